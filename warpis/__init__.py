@@ -1,0 +1,17 @@
+"""warpis: the variance of Monte Carlo direct-illumination estimators on real mesh scenes.
+
+Warp kernels cast light-sampling and BSDF-sampling rays against trimesh-loaded geometry;
+the variance measured over many independent trials is held against closed forms.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.config.quiet = True
+
+from .errors import WarpisError  # noqa: E402
+from .scene import Scene, bundled_scenes, load_scene  # noqa: E402
+
+__version__ = "0.1.0"
+__all__ = ["Scene", "WarpisError", "bundled_scenes", "load_scene", "__version__"]

@@ -1,0 +1,221 @@
+"""Estimators as data: pattern × combiner × techniques, and the trial kernel that runs them.
+
+An estimator is spelled ``PATTERN:COMBINER:TECH[+TECH...]``, e.g.
+``jittered:balance:light-area+cosine``.  One trial is one estimate of F at one receiver
+from N samples; the kernel computes a whole trial per thread (sampling, casting,
+weighting and the sum over N), so no per-sample Python and no R × M × N arrays.
+
+Combiners (seed notation: g_k the pdf of technique k, ḡ their average, N_g techniques,
+m = N/N_g samples per technique):
+
+``single``   IS with one technique: (1/N) Σ f/g.
+``mixture``  IS from ḡ itself (the seed's averaged-pdf IS): each sample picks a technique
+             uniformly at random, weight f/ḡ; (1/N) Σ f/ḡ.  The pattern places all N points.
+``balance``  multi-sample MIS, seed eq. 5: m samples per technique, (1/N) Σ_k Σ_i f/ḡ.
+``power``    multi-sample MIS with the power heuristic (β = 2):
+             Σ_k (1/m) Σ_i w_k f/g_k, w_k = g_k² / Σ_j g_j².
+``biased``   seed eq. 19: (1/N) Σ f(X), X ~ g, unweighted (converges to ∫ f g, not F).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import warp as wp
+
+from .errors import WarpisError
+from .integrand import ShadingPoint, integrand, shading_point
+from .patterns import PATTERNS, grid_shape, pattern_point, pattern_problem
+from .rng import stream, uniform
+from .scene import ReceiverData, SceneData
+from .techniques import TECHNIQUES, LightTable, sample_technique, technique_pdf
+
+SINGLE = wp.constant(0)
+MIXTURE = wp.constant(1)
+BALANCE = wp.constant(2)
+POWER = wp.constant(3)
+BIASED = wp.constant(4)
+
+COMBINERS = {"single": 0, "mixture": 1, "balance": 2, "power": 3, "biased": 4}
+ONE_TECHNIQUE = ("single", "biased")
+# Random-number stream of the mixture's technique choices: past any technique's stream.
+PICK_STREAM = 1 << 16
+
+
+@dataclass(frozen=True)
+class Estimator:
+    """An estimator: where samples go (pattern), how they combine, and from what techniques."""
+
+    pattern: str
+    combiner: str
+    techniques: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        problem = self._problem()
+        if problem:
+            raise WarpisError(f"estimator {self.spec!r}: {problem}")
+
+    @property
+    def spec(self) -> str:
+        """The estimator's spelling, ``PATTERN:COMBINER:TECH[+TECH...]``."""
+        return f"{self.pattern}:{self.combiner}:{'+'.join(self.techniques)}"
+
+    def __str__(self) -> str:
+        return self.spec
+
+    def _problem(self) -> str | None:
+        if self.pattern not in PATTERNS:
+            return f"unknown pattern {self.pattern!r} (valid: {', '.join(PATTERNS)})"
+        if self.combiner not in COMBINERS:
+            return f"unknown combiner {self.combiner!r} (valid: {', '.join(COMBINERS)})"
+        for t in self.techniques:
+            if t not in TECHNIQUES:
+                return f"unknown technique {t!r} (valid: {', '.join(TECHNIQUES)})"
+        if len(set(self.techniques)) != len(self.techniques):
+            return "a technique is listed twice"
+        count = len(self.techniques)
+        if self.combiner in ONE_TECHNIQUE and count != 1:
+            return f"combiner {self.combiner!r} takes exactly one technique (got {count}); " \
+                   "use mixture, balance or power to combine several"
+        if self.combiner not in ONE_TECHNIQUE and count < 2:
+            return f"combiner {self.combiner!r} combines two or more techniques; use single for one"
+        return None
+
+    @property
+    def technique_count(self) -> int:
+        return len(self.techniques)
+
+    def per_technique(self, n: int) -> int:
+        """m: samples each technique places (all N for single, biased and mixture)."""
+        if self.combiner in ("balance", "power"):
+            return n // self.technique_count
+        return n
+
+    def check_n(self, n: int) -> None:
+        """Raise a one-line error if this estimator cannot use N = ``n`` samples."""
+        if n < 1:
+            raise WarpisError(f"estimator {self.spec!r}: N must be at least 1 (got {n})")
+        k = self.technique_count
+        if self.combiner in ("balance", "power") and n % k:
+            valid = ", ".join(str(k * i) for i in range(1, 5))
+            raise WarpisError(f"estimator {self.spec!r}: N = {n} is not divisible by its {k} techniques "
+                              f"(valid: multiples of {k}, e.g. {valid}, …)")
+        problem = pattern_problem(self.pattern, self.per_technique(n))
+        if problem:
+            step = 2 * (k if self.combiner in ("balance", "power") else 1)
+            raise WarpisError(f"estimator {self.spec!r}: pattern {self.pattern!r} {problem}; "
+                              f"valid N: multiples of {step}")
+
+
+def parse_estimator(spec: str | Estimator) -> Estimator:
+    """``"PATTERN:COMBINER:TECH[+TECH...]"`` → :class:`Estimator` (one-line error if invalid)."""
+    if isinstance(spec, Estimator):
+        return spec
+    parts = str(spec).strip().split(":")
+    if len(parts) != 3 or not all(parts):
+        raise WarpisError(
+            f"estimator {spec!r}: expected PATTERN:COMBINER:TECH[+TECH...] with PATTERN in "
+            f"{'|'.join(PATTERNS)}, COMBINER in {'|'.join(COMBINERS)}, TECH in {'|'.join(TECHNIQUES)}")
+    return Estimator(parts[0], parts[1], tuple(parts[2].split("+")))
+
+
+@dataclass(frozen=True)
+class KernelArgs:
+    """The integers the trial kernel needs for one estimator at one N."""
+
+    pattern: int
+    combiner: int
+    techniques: tuple[int, ...]
+    m: int
+    rows: int
+    cols: int
+
+    @classmethod
+    def of(cls, est: Estimator, n: int) -> "KernelArgs":
+        est.check_n(n)
+        m = est.per_technique(n)
+        rows, cols = grid_shape(m)
+        return cls(PATTERNS[est.pattern], COMBINERS[est.combiner], tuple(TECHNIQUES[t] for t in est.techniques),
+                   m, rows, cols)
+
+
+# --------------------------------------------------------------------------- kernel
+
+
+@wp.func
+def other_pdfs(techs: wp.array(dtype=wp.int32), k: wp.int32, pdf_k: float, scene: SceneData, table: LightTable,
+               sp: ShadingPoint, w: wp.vec3, power: wp.int32) -> float:
+    """Σ_j g_j(ω)^power over all techniques, reusing g_k(ω) = pdf_k."""
+    acc = float(0.0)
+    for j in range(techs.shape[0]):
+        g = pdf_k
+        if j != k:
+            g = technique_pdf(techs[j], scene, table, sp, w)
+        if power == 2:
+            g = g * g
+        acc = acc + g
+    return acc
+
+
+@wp.func
+def mixture_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
+                  pattern: wp.int32, techs: wp.array(dtype=wp.int32), n: wp.int32, rows: wp.int32,
+                  cols: wp.int32) -> wp.float64:
+    n_g = techs.shape[0]
+    s = stream(seed, sp.receiver, trial, 0)
+    s_pick = stream(seed, sp.receiver, trial, PICK_STREAM)
+    total = wp.float64(0.0)
+    for i in range(n):
+        u = pattern_point(pattern, s, i, n, rows, cols)
+        k = wp.min(wp.int32(uniform(s_pick, i, 0) * float(n_g)), n_g - 1)
+        w, pdf = sample_technique(techs[k], scene, table, sp, u)
+        if pdf > 0.0:
+            f = integrand(scene, sp, w)
+            if f > 0.0:
+                gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
+                total = total + wp.float64(f / gbar)
+    return total / wp.float64(n)
+
+
+@wp.func
+def stratified_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
+                     pattern: wp.int32, combiner: wp.int32, techs: wp.array(dtype=wp.int32), m: wp.int32,
+                     rows: wp.int32, cols: wp.int32) -> wp.float64:
+    """single, balance, power and biased: m samples from each technique's own pattern."""
+    n_g = techs.shape[0]
+    total = wp.float64(0.0)
+    for k in range(n_g):
+        s = stream(seed, sp.receiver, trial, k)
+        for i in range(m):
+            u = pattern_point(pattern, s, i, m, rows, cols)
+            w, pdf = sample_technique(techs[k], scene, table, sp, u)
+            if pdf > 0.0:
+                f = integrand(scene, sp, w)
+                if f > 0.0:
+                    if combiner == SINGLE:
+                        total = total + wp.float64(f / pdf)
+                    elif combiner == BIASED:
+                        total = total + wp.float64(f)
+                    elif combiner == BALANCE:
+                        gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
+                        total = total + wp.float64(f / gbar)
+                    else:
+                        total = total + wp.float64(f * pdf / other_pdfs(techs, k, pdf, scene, table, sp, w, 2))
+    if combiner == BALANCE:
+        return total / wp.float64(m * n_g)
+    return total / wp.float64(m)
+
+
+@wp.kernel
+def trial_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
+                 trial_offset: wp.int32, seed: wp.uint32, pattern: wp.int32, combiner: wp.int32,
+                 techs: wp.array(dtype=wp.int32), m: wp.int32, rows: wp.int32, cols: wp.int32,
+                 out: wp.array2d(dtype=wp.float64)):
+    """One estimate per thread: receiver row i, trial trial_offset + j."""
+    i, j = wp.tid()
+    trial = trial_offset + j
+    sp = shading_point(scene, recv, receivers[i])
+    if combiner == MIXTURE:
+        out[i, trial] = mixture_trial(scene, table, sp, seed, trial, pattern, techs, m, rows, cols)
+    else:
+        out[i, trial] = stratified_trial(scene, table, sp, seed, trial, pattern, combiner, techs, m, rows, cols)

@@ -1,0 +1,323 @@
+"""Sampling techniques: ``sample(u) → (ω, pdf)`` and ``pdf(ω)`` pairs, as Warp functions.
+
+Techniques (codes in ``TECHNIQUES``):
+
+``uniform``            uniform over the receiver's hemisphere, 1/(2π).
+``cosine``             cosine-weighted hemisphere, cos θ/π (BSDF sampling for irradiance
+                       and lambert).
+``phong``              the lobe (e+1)/(2π) cos^e α about the view's mirror direction, on the
+                       whole sphere: directions below the horizon are produced with that
+                       density and carry f = 0, so the estimate stays unbiased.
+``light-area``         an emitter triangle picked by its share of the total emitter area
+                       (u.x through the area CDF, then rescaled within the chosen interval
+                       so that strata of u stay strata), a uniform point on it; a uniform
+                       area density 1/A over all emitters, in solid angle A⁻¹ r²/|cos θ_y|.
+``light-power``        the same with triangles picked in proportion to radiance × area.
+``light-solid-angle``  a triangle picked in proportion to solid angle × radiance among those
+                       whose front faces the receiver, then a uniform direction within its
+                       spherical triangle (Arvo 1995).
+
+The pdf convention, relied on by MIS and by the theory: ``technique_pdf(ω)`` is the density
+of the direction ω that ``sample_technique`` produces, whatever ω hits first.  For light
+techniques a direction crossing several emitter triangles (the near and far side of a
+sphere light, an emitter behind an occluder) carries the *sum* of their densities: the
+pdf casts through a mesh of the emitter triangles alone and visits every crossing.  The
+pdf a sample reports is computed by that same function, so the two cannot disagree.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .integrand import FAR, ShadingPoint, shading_point
+from .scene import ReceiverData, Scene, SceneData
+from .warps import (
+    cosine_hemisphere_pdf,
+    phong_lobe_pdf,
+    square_to_cosine_hemisphere,
+    square_to_phong_lobe,
+    square_to_spherical_triangle,
+    square_to_triangle,
+    square_to_uniform_hemisphere,
+    to_world,
+    triangle_solid_angle,
+    uniform_hemisphere_pdf,
+)
+
+UNIFORM = wp.constant(0)
+COSINE = wp.constant(1)
+PHONG_LOBE = wp.constant(2)
+LIGHT_AREA = wp.constant(3)
+LIGHT_POWER = wp.constant(4)
+LIGHT_SOLID_ANGLE = wp.constant(5)
+
+TECHNIQUES = {
+    "uniform": 0,
+    "cosine": 1,
+    "phong": 2,
+    "light-area": 3,
+    "light-power": 4,
+    "light-solid-angle": 5,
+}
+LIGHT_TECHNIQUES = ("light-area", "light-power", "light-solid-angle")
+
+# A ray crosses at most this many emitter triangles in a pdf evaluation.
+MAX_CROSSINGS = wp.constant(64)
+
+
+@wp.struct
+class LightTable:
+    """Per-receiver selection of emitter triangles for ``light-solid-angle``."""
+
+    cdf: wp.array2d(dtype=wp.float64)  # (R, E + 1): Σ Ω_k L_k over front-facing k, normalised
+    total: wp.array(dtype=wp.float64)  # (R,): Σ Ω_k L_k; 0 when no emitter faces the receiver
+
+
+# --------------------------------------------------------------------------- emitters
+
+
+@wp.func
+def emitter_corner(scene: SceneData, k: wp.int32, c: wp.int32) -> wp.vec3:
+    """Corner ``c`` of emitter triangle ``k``."""
+    t = scene.emitter_tri[k]
+    return scene.points[scene.indices[3 * t + c]]
+
+
+@wp.func
+def emitter_corner64(scene: SceneData, k: wp.int32, c: wp.int32) -> wp.vec3d:
+    v = emitter_corner(scene, k, c)
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+
+@wp.func
+def emitter_faces(scene: SceneData, k: wp.int32, p: wp.vec3) -> bool:
+    """Whether the front face of emitter triangle ``k`` faces point ``p``."""
+    a = emitter_corner(scene, k, 0)
+    nrm = wp.cross(emitter_corner(scene, k, 1) - a, emitter_corner(scene, k, 2) - a)
+    return wp.dot(nrm, p - a) > 0.0
+
+
+@wp.func
+def search_cdf(cdf: wp.array(dtype=wp.float32), count: wp.int32, x: float) -> wp.int32:
+    """The interval k with cdf[k] ≤ x < cdf[k+1] (cdf has count + 1 entries)."""
+    lo = wp.int32(0)
+    hi = count
+    while hi - lo > 1:
+        mid = (lo + hi) / 2
+        if cdf[mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
+def search_cdf_row(cdf: wp.array2d(dtype=wp.float64), r: wp.int32, count: wp.int32, x: wp.float64) -> wp.int32:
+    lo = wp.int32(0)
+    hi = count
+    while hi - lo > 1:
+        mid = (lo + hi) / 2
+        if cdf[r, mid] <= x:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
+def rescale(x: float, lo: float, hi: float) -> float:
+    """Map x ∈ [lo, hi) to [0, 1): the chosen interval of u.x becomes a fresh u.x."""
+    return wp.clamp((x - lo) / wp.max(hi - lo, 1.0e-30), 0.0, 0.99999994)
+
+
+@wp.func
+def light_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, w: wp.vec3) -> float:
+    """Solid-angle density of a light technique at ω: a sum over every emitter crossing."""
+    pdf = float(0.0)
+    origin = sp.p
+    travelled = float(0.0)
+    for _ in range(MAX_CROSSINGS):
+        q = wp.mesh_query_ray(scene.emitter_mesh, origin, w, FAR)
+        if not q.result:
+            break
+        travelled = travelled + q.t
+        k = q.face
+        radiance = scene.tri_emission[scene.emitter_tri[k]]
+        if tech == LIGHT_SOLID_ANGLE:
+            if q.sign > 0.0 and table.total[sp.receiver] > wp.float64(0.0):
+                pdf = pdf + radiance / float(table.total[sp.receiver])
+        else:
+            area_density = 1.0 / scene.total_area
+            if tech == LIGHT_POWER:
+                area_density = radiance / scene.total_power
+            cos_y = wp.max(wp.abs(wp.dot(q.normal, w)), 1.0e-12)
+            pdf = pdf + area_density * travelled * travelled / cos_y
+        # Step just past this crossing; a ray through a shared edge counts it once.
+        origin = origin + (q.t + scene.ray_eps) * w
+        travelled = travelled + scene.ray_eps
+    return pdf
+
+
+@wp.func
+def sample_light(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2) -> wp.vec3:
+    """A direction from a light technique (zero vector when there is nothing to sample)."""
+    n_e = scene.emitter_count
+    if tech == LIGHT_SOLID_ANGLE:
+        total = table.total[sp.receiver]
+        if total <= wp.float64(0.0):
+            return wp.vec3(0.0, 0.0, 0.0)
+        x = wp.float64(u[0])
+        k = search_cdf_row(table.cdf, sp.receiver, n_e, x)
+        lo = table.cdf[sp.receiver, k]
+        hi = table.cdf[sp.receiver, k + 1]
+        ux = float(wp.clamp((x - lo) / wp.max(hi - lo, wp.float64(1.0e-300)), wp.float64(0.0), wp.float64(0.99999994)))
+        p64 = wp.vec3d(wp.float64(sp.p[0]), wp.float64(sp.p[1]), wp.float64(sp.p[2]))
+        d = square_to_spherical_triangle(wp.vec2(ux, u[1]), p64, emitter_corner64(scene, k, 0),
+                                         emitter_corner64(scene, k, 1), emitter_corner64(scene, k, 2))
+        return wp.normalize(wp.vec3(float(d[0]), float(d[1]), float(d[2])))
+    k = wp.int32(0)
+    ux = float(0.0)
+    if tech == LIGHT_POWER:
+        k = search_cdf(scene.power_cdf, n_e, u[0])
+        ux = rescale(u[0], scene.power_cdf[k], scene.power_cdf[k + 1])
+    else:
+        k = search_cdf(scene.area_cdf, n_e, u[0])
+        ux = rescale(u[0], scene.area_cdf[k], scene.area_cdf[k + 1])
+    y = square_to_triangle(wp.vec2(ux, u[1]), emitter_corner(scene, k, 0), emitter_corner(scene, k, 1),
+                           emitter_corner(scene, k, 2))
+    return wp.normalize(y - sp.p)
+
+
+# --------------------------------------------------------------------------- dispatch
+
+
+@wp.func
+def technique_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, w: wp.vec3) -> float:
+    """Solid-angle density with which technique ``tech`` produces direction ω."""
+    if tech == UNIFORM:
+        return uniform_hemisphere_pdf(wp.dot(w, sp.n))
+    if tech == COSINE:
+        return cosine_hemisphere_pdf(wp.dot(w, sp.n))
+    if tech == PHONG_LOBE:
+        return phong_lobe_pdf(wp.dot(w, sp.lobe_axis), sp.exponent)
+    return light_pdf(tech, scene, table, sp, w)
+
+
+@wp.func
+def sample_direction(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2) -> wp.vec3:
+    """The direction that technique ``tech`` maps primary sample u to (zero if none)."""
+    if tech == UNIFORM:
+        return to_world(square_to_uniform_hemisphere(u), sp.n)
+    if tech == COSINE:
+        return to_world(square_to_cosine_hemisphere(u), sp.n)
+    if tech == PHONG_LOBE:
+        return to_world(square_to_phong_lobe(u, sp.exponent), sp.lobe_axis)
+    return sample_light(tech, scene, table, sp, u)
+
+
+@wp.func
+def sample_technique(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2):
+    """``(ω, pdf)`` for primary sample u; pdf = 0 marks a failed sample (contributes 0)."""
+    w = sample_direction(tech, scene, table, sp, u)
+    if wp.length_sq(w) == 0.0:
+        return w, float(0.0)
+    return w, technique_pdf(tech, scene, table, sp, w)
+
+
+# --------------------------------------------------------------------------- light table
+
+
+@wp.kernel
+def _light_table_kernel(scene: SceneData, recv: ReceiverData, cdf: wp.array2d(dtype=wp.float64),
+                        total: wp.array(dtype=wp.float64)):
+    r = wp.tid()
+    sp = shading_point(scene, recv, r)
+    p64 = wp.vec3d(wp.float64(sp.p[0]), wp.float64(sp.p[1]), wp.float64(sp.p[2]))
+    acc = wp.float64(0.0)
+    cdf[r, 0] = acc
+    for k in range(scene.emitter_count):
+        if emitter_faces(scene, k, sp.p):
+            omega = triangle_solid_angle(p64, emitter_corner64(scene, k, 0), emitter_corner64(scene, k, 1),
+                                         emitter_corner64(scene, k, 2))
+            acc = acc + omega * wp.float64(scene.tri_emission[scene.emitter_tri[k]])
+        cdf[r, k + 1] = acc
+    total[r] = acc
+    if acc > wp.float64(0.0):
+        for k in range(scene.emitter_count + 1):
+            cdf[r, k] = cdf[r, k] / acc
+        cdf[r, scene.emitter_count] = wp.float64(1.0)
+
+
+def light_table(scene: Scene) -> LightTable:
+    """The solid-angle selection table of every receiver of ``scene`` (cached on it)."""
+    cached = getattr(scene, "_light_table", None)
+    if cached is not None:
+        return cached
+    r, e = len(scene.receivers), scene.emitter_count
+    table = LightTable()
+    table.cdf = wp.zeros((r, e + 1), dtype=wp.float64, device=scene.device)
+    table.total = wp.zeros(r, dtype=wp.float64, device=scene.device)
+    wp.launch(_light_table_kernel, dim=r, inputs=[scene.data, scene.receiver_data, table.cdf, table.total],
+              device=scene.device)
+    scene._light_table = table
+    return table
+
+
+def technique_code(name: str) -> int:
+    """The code of a technique name, or a one-line error listing the valid names."""
+    from .errors import WarpisError
+
+    if name not in TECHNIQUES:
+        raise WarpisError(f"unknown technique {name!r} (valid: {', '.join(TECHNIQUES)})")
+    return TECHNIQUES[name]
+
+
+# --------------------------------------------------------------------------- numpy wrappers
+
+
+@wp.kernel
+def _sample_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
+                   u: wp.array(dtype=wp.vec2), dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    sp = shading_point(scene, recv, r)
+    w, p = sample_technique(tech, scene, table, sp, u[i])
+    dirs[i] = w
+    pdf[i] = wp.float64(p)
+
+
+@wp.kernel
+def _pdf_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
+                dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    sp = shading_point(scene, recv, r)
+    pdf[i] = wp.float64(technique_pdf(tech, scene, table, sp, wp.normalize(dirs[i])))
+
+
+def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Map primary samples ``u`` (K, 2) through a technique at one receiver.
+
+    Returns
+    -------
+    directions : (K, 3) float32 unit vectors (zero rows where the technique had nothing to sample)
+    pdf : (K,) float64 solid-angle densities (0 for failed samples)
+    """
+    dev = scene.device
+    uu = wp.array(np.ascontiguousarray(u, dtype=np.float32), dtype=wp.vec2, device=dev)
+    dirs = wp.zeros(len(u), dtype=wp.vec3, device=dev)
+    pdf = wp.zeros(len(u), dtype=wp.float64, device=dev)
+    wp.launch(_sample_kernel, dim=len(u), device=dev,
+              inputs=[scene.data, scene.receiver_data, light_table(scene), technique_code(technique), receiver,
+                      uu, dirs, pdf])
+    return dirs.numpy(), pdf.numpy()
+
+
+def direction_pdf(scene: Scene, receiver: int, technique: str, directions: np.ndarray) -> np.ndarray:
+    """Solid-angle density of ``technique`` at each of ``directions`` (K, 3) → (K,)."""
+    dev = scene.device
+    dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=dev)
+    pdf = wp.zeros(len(directions), dtype=wp.float64, device=dev)
+    wp.launch(_pdf_kernel, dim=len(directions), device=dev,
+              inputs=[scene.data, scene.receiver_data, light_table(scene), technique_code(technique), receiver,
+                      dirs, pdf])
+    return pdf.numpy()
