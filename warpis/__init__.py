@@ -8,7 +8,11 @@ from __future__ import annotations
 
 import warp as wp
 
-wp.config.quiet = True
+# Warp's start-up banner and per-module load lines would drown the tool's own output.
+if hasattr(wp, "LOG_WARNING"):
+    wp.config.log_level = wp.LOG_WARNING
+else:  # pragma: no cover - warp-lang before the logging API
+    wp.config.quiet = True
 
 from .errors import WarpisError  # noqa: E402
 from .scene import Scene, bundled_scenes, load_scene  # noqa: E402
