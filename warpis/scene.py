@@ -42,7 +42,7 @@ class SceneData:
     """Everything a kernel needs to cast rays and sample the emitters of a scene."""
 
     mesh: wp.uint64  # every triangle: emitters occlude too
-    emitter_mesh: wp.uint64  # emitter triangles only, for light-sampling pdfs
+    emitter_bvh: wp.uint64  # bounds of the emitter triangles, for light-sampling pdfs
     points: wp.array(dtype=wp.vec3)
     indices: wp.array(dtype=wp.int32)  # 3 per triangle, into points
     tri_emission: wp.array(dtype=wp.float32)  # radiance of each triangle's front face
@@ -403,6 +403,8 @@ def _parse_toml(file: Path) -> dict:
             return tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise fail(file, f"not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise fail(file, f"not valid TOML: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except OSError as exc:
         raise fail(file, f"cannot read: {exc.strerror}") from None
 
@@ -510,11 +512,13 @@ def upload(scene: Scene, device: str) -> None:
         points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3)
         indices = wp.array(scene.triangles.reshape(-1).astype(np.int32), dtype=wp.int32)
         mesh = wp.Mesh(points=points, indices=indices)
-        e_indices = wp.array(scene.triangles[scene.emitters].reshape(-1).astype(np.int32), dtype=wp.int32)
-        emitter_mesh = wp.Mesh(points=points, indices=e_indices)
+        corners = scene.triangle_vertices(scene.emitters).astype(np.float32)
+        pad = np.float32(RAY_EPSILON * scene.diagonal)  # flat triangles get boxes of non-zero width
+        emitter_bvh = wp.Bvh(wp.array(corners.min(axis=1) - pad, dtype=wp.vec3),
+                             wp.array(corners.max(axis=1) + pad, dtype=wp.vec3))
         d = SceneData()
         d.mesh = mesh.id
-        d.emitter_mesh = emitter_mesh.id
+        d.emitter_bvh = emitter_bvh.id
         d.points = points
         d.indices = indices
         d.tri_emission = wp.array(scene.emission.astype(np.float32), dtype=wp.float32)
@@ -537,4 +541,4 @@ def upload(scene: Scene, device: str) -> None:
     scene.device = str(device)
     scene.data = d
     scene.receiver_data = rd
-    scene._keep = [points, indices, mesh, e_indices, emitter_mesh]
+    scene._keep = [points, indices, mesh, emitter_bvh]

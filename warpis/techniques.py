@@ -21,8 +21,8 @@ The pdf convention, relied on by MIS and by the theory: ``technique_pdf(ω)`` is
 of the direction ω that ``sample_technique`` produces, whatever ω hits first.  For light
 techniques a direction crossing several emitter triangles (the near and far side of a
 sphere light, an emitter behind an occluder) carries the *sum* of their densities: the
-pdf casts through a mesh of the emitter triangles alone and visits every crossing.  The
-pdf a sample reports is computed by that same function, so the two cannot disagree.
+pdf traverses a BVH of the emitter triangles alone and visits every crossing.  The pdf
+a sample reports is computed by that same function, so the two cannot disagree.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .integrand import FAR, ShadingPoint, shading_point
+from .integrand import ShadingPoint, shading_point
 from .scene import ReceiverData, Scene, SceneData
 from .warps import (
     cosine_hemisphere_pdf,
@@ -62,8 +62,10 @@ TECHNIQUES = {
 }
 LIGHT_TECHNIQUES = ("light-area", "light-power", "light-solid-angle")
 
-# A ray crosses at most this many emitter triangles in a pdf evaluation.
-MAX_CROSSINGS = wp.constant(64)
+# Crossings a pdf evaluation remembers, so that a ray through an edge (or corner) shared
+# by several emitter triangles, which each of them reports, counts that crossing once.
+MAX_CROSSINGS = wp.constant(16)
+Crossings = wp.types.vector(length=MAX_CROSSINGS, dtype=wp.float32)
 
 
 @wp.struct
@@ -132,30 +134,66 @@ def rescale(x: float, lo: float, hi: float) -> float:
 
 
 @wp.func
+def ray_triangle(o: wp.vec3, w: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
+    """Distance t > 0 at which the ray (o, ω) crosses triangle abc, or −1 (Möller–Trumbore)."""
+    e1 = b - a
+    e2 = c - a
+    pv = wp.cross(w, e2)
+    det = wp.dot(e1, pv)
+    if det == 0.0:
+        return -1.0
+    inv = 1.0 / det
+    tv = o - a
+    bu = wp.dot(tv, pv) * inv
+    if bu < 0.0 or bu > 1.0:
+        return -1.0
+    qv = wp.cross(tv, e1)
+    bv = wp.dot(w, qv) * inv
+    if bv < 0.0 or bu + bv > 1.0:
+        return -1.0
+    t = wp.dot(e2, qv) * inv
+    return wp.where(t > 0.0, t, -1.0)
+
+
+@wp.func
 def light_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, w: wp.vec3) -> float:
-    """Solid-angle density of a light technique at ω: a sum over every emitter crossing."""
+    """Solid-angle density of a light technique at ω: a sum over every emitter crossing.
+
+    One traversal of the emitter triangles' BVH visits each triangle whose box the ray
+    meets; each one the ray actually crosses adds its density.  Crossings within
+    ``ray_eps`` of one already counted are the same crossing (a ray through an edge
+    shared by two triangles meets both at one point) and add nothing.
+    """
     pdf = float(0.0)
-    origin = sp.p
-    travelled = float(0.0)
-    for _ in range(MAX_CROSSINGS):
-        q = wp.mesh_query_ray(scene.emitter_mesh, origin, w, FAR)
-        if not q.result:
-            break
-        travelled = travelled + q.t
-        k = q.face
-        radiance = scene.tri_emission[scene.emitter_tri[k]]
-        if tech == LIGHT_SOLID_ANGLE:
-            if q.sign > 0.0 and table.total[sp.receiver] > wp.float64(0.0):
-                pdf = pdf + radiance / float(table.total[sp.receiver])
-        else:
-            area_density = 1.0 / scene.total_area
-            if tech == LIGHT_POWER:
-                area_density = radiance / scene.total_power
-            cos_y = wp.max(wp.abs(wp.dot(q.normal, w)), 1.0e-12)
-            pdf = pdf + area_density * travelled * travelled / cos_y
-        # Step just past this crossing; a ray through a shared edge counts it once.
-        origin = origin + (q.t + scene.ray_eps) * w
-        travelled = travelled + scene.ray_eps
+    query = wp.bvh_query_ray(scene.emitter_bvh, sp.p, w)
+    k = wp.int32(0)
+    seen = Crossings()
+    count = wp.int32(0)
+    while wp.bvh_query_next(query, k):
+        a = emitter_corner(scene, k, 0)
+        b = emitter_corner(scene, k, 1)
+        c = emitter_corner(scene, k, 2)
+        t = ray_triangle(sp.p, w, a, b, c)
+        repeat = bool(False)
+        for i in range(count):
+            if wp.abs(seen[i] - t) <= scene.ray_eps:
+                repeat = True
+        if t > 0.0 and not repeat:
+            if count < MAX_CROSSINGS:
+                seen[count] = t
+                count += 1
+            radiance = scene.tri_emission[scene.emitter_tri[k]]
+            nrm = wp.cross(b - a, c - a)
+            if tech == LIGHT_SOLID_ANGLE:
+                # Only triangles whose front faces the receiver can be chosen.
+                if wp.dot(nrm, w) < 0.0 and table.total[sp.receiver] > wp.float64(0.0):
+                    pdf = pdf + radiance / float(table.total[sp.receiver])
+            else:
+                area_density = 1.0 / scene.total_area
+                if tech == LIGHT_POWER:
+                    area_density = radiance / scene.total_power
+                cos_y = wp.max(wp.abs(wp.dot(wp.normalize(nrm), w)), 1.0e-12)
+                pdf = pdf + area_density * t * t / cos_y
     return pdf
 
 

@@ -1,0 +1,246 @@
+"""Shared fixtures and helpers: scene files written on the fly, bundled scenes loaded once.
+
+``write_scene(directory, meshes=..., receivers=..., material=...)`` writes mesh files and
+a scene TOML (see DESIGN.md, "Scene files") and returns the TOML's path.  Every key of a
+mesh entry goes into its ``[[mesh]]`` table verbatim, except three that say what to
+write at ``path``: ``vertices`` and ``faces`` (geometry, written in the format of the
+path's suffix), or ``content`` (bytes or text, written as is).  Values are written as
+TOML literals, so a test can put any value (``nan``, ``inf``, unknown keys, wrong types)
+anywhere in a scene file.
+
+Tests import the helpers directly (``from conftest import quad, write_scene``) or take
+the ``write_scene`` fixture.  ``cli`` runs ``warpis.cli.main`` in-process with captured
+output; ``run_warpis`` runs the command in a fresh Python process.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import trimesh
+
+import warpis
+
+BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")
+
+# The default material and receivers of write_scene: irradiance at the origin, facing +z.
+IRRADIANCE = {"type": "irradiance"}
+ONE_RECEIVER = {"points": [[0.0, 0.0, 0.0]], "normal": [0.0, 0.0, 1.0]}
+
+_MESH_FILE_KEYS = ("vertices", "faces", "content")
+_DEFAULT = object()
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def quad(center=(0.0, 0.0, 0.0), half: float | tuple[float, float] = 0.5, facing: str = "down"):
+    """Horizontal rectangle as two triangles: (vertices (4, 3), faces (2, 3)).
+
+    ``half`` is the half-size (one number, or (x, y)); ``facing`` is ``"down"`` (front
+    face towards −z, as a ceiling light) or ``"up"`` (towards +z, as a floor).
+    """
+    hx, hy = (half, half) if np.isscalar(half) else half
+    v = np.array([[-hx, -hy, 0.0], [-hx, hy, 0.0], [hx, hy, 0.0], [hx, -hy, 0.0]]) + np.asarray(center, float)
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    if facing == "up":
+        f = f[:, ::-1].copy()
+    elif facing != "down":
+        raise ValueError(f"facing must be 'up' or 'down', got {facing!r}")
+    return v, f
+
+
+def floor_entry(path: str = "floor.obj", half: float = 2.0, **keys: Any) -> dict[str, Any]:
+    """A [[mesh]] entry: a 2·half square floor at z = 0 facing up."""
+    v, f = quad((0.0, 0.0, 0.0), half, "up")
+    return {"path": path, "vertices": v, "faces": f, **keys}
+
+
+def light_entry(path: str = "light.obj", emission: float = 10.0, height: float = 1.0, half: float = 0.5,
+                **keys: Any) -> dict[str, Any]:
+    """A [[mesh]] entry: a 2·half square light at z = height facing down, radiance ``emission``."""
+    v, f = quad((0.0, 0.0, height), half, "down")
+    return {"path": path, "vertices": v, "faces": f, "emission": emission, **keys}
+
+
+def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
+    """Write a triangle mesh in the format of ``path``'s suffix.
+
+    OBJ is written by hand with ``repr`` floats (exact round trip, and NaN or infinite
+    coordinates survive); every other format goes through trimesh's exporter.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if path.suffix.lower() == ".obj":
+        lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in vertices.tolist()]
+        lines += ["f " + " ".join(str(i + 1) for i in face) for face in faces.tolist()]
+        path.write_text("\n".join(lines) + "\n")
+    else:
+        trimesh.Trimesh(vertices, faces, process=False).export(path)
+    return path
+
+
+# --------------------------------------------------------------------------- TOML
+
+
+def toml_value(value: Any) -> str:
+    """A Python value as a TOML literal (dicts become inline tables)."""
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, Path):
+        return json.dumps(str(value))
+    if isinstance(value, (list, tuple, np.ndarray)):
+        items = value.tolist() if isinstance(value, np.ndarray) else value
+        return "[" + ", ".join(toml_value(v) for v in items) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{toml_key(k)} = {toml_value(v)}" for k, v in value.items()) + " }"
+    raise TypeError(f"no TOML literal for {value!r}")
+
+
+def toml_key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
+
+
+def _table(header: str, table: dict[str, Any]) -> list[str]:
+    return [header] + [f"{toml_key(k)} = {toml_value(v)}" for k, v in table.items()] + [""]
+
+
+def write_scene(directory: Path, meshes: list[dict[str, Any]] | None = None,
+                receivers: dict | list[dict] | None = None, material: dict | None = _DEFAULT,
+                name: str | None = "test-scene", extra: dict[str, Any] | None = None,
+                filename: str = "scene.toml") -> Path:
+    """Write mesh files and a scene TOML under ``directory``; return the TOML's path.
+
+    Parameters
+    ----------
+    meshes
+        ``[[mesh]]`` entries (default: :func:`floor_entry` and :func:`light_entry`).
+        ``vertices``/``faces`` or ``content`` in an entry are written to its ``path``
+        (relative to ``directory``) and left out of the TOML; an entry without them
+        names a file that must already exist, or that a test means to be missing.
+    receivers
+        One ``[receivers]`` table (a dict) or several ``[[receivers]]`` (a list of
+        dicts); default: one point at the origin with normal +z.
+    material
+        The ``[material]`` table (default irradiance); ``None`` leaves it out.
+    name
+        The scene's ``name``; ``None`` leaves it out.
+    extra
+        More top-level keys, written before the tables.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    if meshes is None:
+        meshes = [floor_entry(), light_entry()]
+    if receivers is None:
+        receivers = ONE_RECEIVER
+    if material is _DEFAULT:
+        material = IRRADIANCE
+    top = ({"name": name} if name is not None else {}) | (extra or {})
+    lines = [f"{toml_key(k)} = {toml_value(v)}" for k, v in top.items()] + [""]
+    for entry in meshes:
+        entry = dict(entry)
+        if "vertices" in entry or "faces" in entry:
+            write_mesh(directory / entry["path"], entry.pop("vertices"), entry.pop("faces"))
+        elif "content" in entry:
+            target = directory / entry["path"]
+            target.parent.mkdir(parents=True, exist_ok=True)
+            data = entry.pop("content")
+            target.write_bytes(data if isinstance(data, bytes) else data.encode())
+        lines += _table("[[mesh]]", entry)
+    if isinstance(receivers, dict):
+        lines += _table("[receivers]", receivers)
+    else:
+        for group in receivers:
+            lines += _table("[[receivers]]", group)
+    if material is not None:
+        lines += _table("[material]", material)
+    path = directory / filename
+    path.write_text("\n".join(lines))
+    return path
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(name="write_scene")
+def write_scene_fixture():
+    """:func:`write_scene` itself: ``write_scene(tmp_path, meshes=..., ...)`` → scene TOML path."""
+    return write_scene
+
+
+@pytest.fixture(scope="session")
+def loaded_scenes() -> dict[str, warpis.Scene]:
+    """Every bundled scene, loaded once per test session on the CPU (name → Scene)."""
+    return {name: warpis.load_scene(name) for name in warpis.bundled_scenes()}
+
+
+@pytest.fixture(scope="session", params=BUNDLED)
+def bundled_scene(request, loaded_scenes) -> warpis.Scene:
+    """Each bundled scene in turn (parametrised by name), from the session's cache."""
+    return loaded_scenes[request.param]
+
+
+# --------------------------------------------------------------------------- command line
+
+
+@dataclass
+class CliResult:
+    """Exit status and captured output of one ``warpis`` run."""
+
+    status: int
+    out: str
+    err: str
+
+    @property
+    def err_lines(self) -> list[str]:
+        return self.err.splitlines()
+
+
+def run_warpis(*args: str, timeout: float = 300) -> CliResult:
+    """Run ``python -m warpis.cli ARGS`` in a fresh process (the real console behaviour)."""
+    proc = subprocess.run([sys.executable, "-m", "warpis.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout)
+    return CliResult(proc.returncode, proc.stdout, proc.stderr)
+
+
+@pytest.fixture
+def cli(capsys):
+    """``cli(*args)`` runs ``warpis.cli.main(args)`` in this process → :class:`CliResult`.
+
+    argparse's exits (``--help``, usage errors) become the status, as in a real process.
+    """
+    from warpis.cli import main
+
+    def run(*args: str) -> CliResult:
+        capsys.readouterr()
+        try:
+            status = main([str(a) for a in args])
+        except SystemExit as exc:
+            status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        captured = capsys.readouterr()
+        return CliResult(status, captured.out, captured.err)
+
+    return run

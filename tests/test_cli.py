@@ -1,0 +1,237 @@
+"""Tests of the ``warpis`` command: scenes, info, reference, estimate, help and errors.
+
+Most runs call ``warpis.cli.main`` in this process (the ``cli`` fixture of conftest.py);
+the help text and usage errors are also checked in a fresh process, as a user sees them.
+Every usage error must end with exit status 2, exactly one ``warpis: error:`` line on
+stderr, no traceback and nothing on stdout.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from conftest import BUNDLED, run_warpis, write_scene
+
+SUMMARY_KEYS = {"scene", "triangles", "emitter_triangles", "receivers", "emitter_area", "total_power"}
+ESTIMATE = ["estimate", "occluded-quad", "--estimator", "independent:single:light-area", "--n", "8",
+            "--trials", "50", "--json"]
+
+
+def _one_error_line(result) -> str:
+    assert result.status == 2, (result.status, result.err)
+    assert result.out == ""
+    assert len(result.err_lines) == 1, result.err
+    assert "Traceback" not in result.err
+    line = result.err_lines[0]
+    assert line.startswith("warpis: error: "), line
+    return line
+
+
+def test_scenes_lists_the_bundled_scenes(cli, loaded_scenes):
+    """`warpis scenes` prints a header and one row per bundled scene, with its triangle
+    count; `--json` gives the same scenes with each scene's summary."""
+    result = cli("scenes")
+    assert result.status == 0 and "Traceback" not in result.err
+    lines = result.out.strip().splitlines()
+    assert lines[0].split()[0] == "scene"
+    rows = {line.split()[0]: line.split() for line in lines[1:]}
+    assert sorted(rows) == sorted(BUNDLED)
+    for name, row in rows.items():
+        assert int(row[1]) == loaded_scenes[name].triangle_count
+
+    result = cli("scenes", "--json")
+    data = json.loads(result.out)
+    assert [row["scene"] for row in data["scenes"]] == sorted(BUNDLED)
+    for row in data["scenes"]:
+        assert SUMMARY_KEYS <= set(row)
+        assert row["emitter_triangles"] == loaded_scenes[row["scene"]].emitter_count
+
+
+def test_info_table(cli):
+    """`warpis info SCENE` prints the description, the counts, the emitter meshes
+    (light.obj with radiance 10) and the receiver groups."""
+    result = cli("info", "occluded-quad")
+    assert result.status == 0 and result.err == ""
+    assert "occluded-quad" in result.out and "light.obj" in result.out
+    row = next(line for line in result.out.splitlines() if line.startswith("occluded-quad"))
+    assert row.split()[1:4] == ["16", "2", "8"]
+    assert "receiver groups:" in result.out and "irradiance" in result.out
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_info_json(name, cli, loaded_scenes):
+    """`warpis info SCENE --json` is JSON with the keys scene, triangles,
+    emitter_triangles, receivers, emitter_area and total_power, equal to the loaded
+    scene's; its emitters add up to the totals."""
+    result = cli("info", name, "--json")
+    assert result.status == 0
+    data = json.loads(result.out)
+    assert SUMMARY_KEYS <= set(data)
+    s = loaded_scenes[name]
+    assert data["scene"] == name
+    assert (data["triangles"], data["emitter_triangles"], data["receivers"]) == (
+        s.triangle_count, s.emitter_count, len(s.receivers))
+    assert data["emitter_area"] == pytest.approx(s.total_emitter_area, rel=1e-12)
+    assert data["total_power"] == pytest.approx(s.total_power, rel=1e-12)
+    assert sum(e["area"] for e in data["emitters"]) == pytest.approx(data["emitter_area"], rel=1e-9)
+    assert sum(e["power"] for e in data["emitters"]) == pytest.approx(data["total_power"], rel=1e-9)
+    assert sum(g["receivers"] for g in data["receiver_groups"]) == data["receivers"]
+
+
+def test_info_on_a_path(cli, tmp_path):
+    """`warpis info` takes a scene file's path or its folder as well as a bundled name."""
+    path = write_scene(tmp_path, name="my-scene")
+    for arg in (path, tmp_path):
+        result = cli("info", arg, "--json")
+        assert result.status == 0, result.err
+        data = json.loads(result.out)
+        assert data["scene"] == "my-scene"
+        assert (data["triangles"], data["emitter_triangles"], data["receivers"]) == (4, 2, 1)
+        assert data["emitter_area"] == pytest.approx(1.0) and data["total_power"] == pytest.approx(10.0)
+
+
+def test_help():
+    """`warpis --help` exits 0 and names every subcommand; each subcommand has help."""
+    result = run_warpis("--help")
+    assert result.status == 0 and result.err == ""
+    assert result.out.startswith("usage: warpis")
+    for command in ("scenes", "info", "reference", "estimate"):
+        assert command in result.out
+
+
+def test_subcommand_help(cli):
+    """`warpis estimate --help` documents --estimator, --n, --trials and --seed."""
+    result = cli("estimate", "--help")
+    assert result.status == 0
+    for option in ("--estimator", "--n", "--trials", "--seed", "--receivers", "--json"):
+        assert option in result.out
+
+
+def test_unknown_subcommand():
+    """An unknown subcommand exits 2 with one error line naming the valid commands,
+    in a fresh process, with nothing on stdout."""
+    line = _one_error_line(run_warpis("frobnicate", "occluded-quad"))
+    assert "frobnicate" in line and "estimate" in line
+
+
+def test_missing_subcommand(cli):
+    """`warpis` with no subcommand exits 2 with one error line."""
+    _one_error_line(cli())
+
+
+def test_reference_json(cli):
+    """`warpis reference occluded-quad --json` is {"scene", "receivers": [{"index",
+    "value", "stderr", "method"}]} with one row per receiver in order, method closed-form
+    or quadrature, finite values, closed forms exact (stderr 0), and umbra receivers 0."""
+    result = cli("reference", "occluded-quad", "--json")
+    assert result.status == 0, result.err
+    data = json.loads(result.out)
+    assert data["scene"] == "occluded-quad"
+    rows = data["receivers"]
+    assert [r["index"] for r in rows] == list(range(8))
+    for r in rows:
+        assert {"index", "value", "stderr", "method"} <= set(r)
+        assert r["method"] in {"closed-form", "quadrature"}
+        assert math.isfinite(r["value"]) and r["value"] >= 0.0
+        assert math.isfinite(r["stderr"]) and r["stderr"] >= 0.0
+        if r["method"] == "closed-form":
+            assert r["stderr"] == 0.0
+    assert rows[3]["value"] == 0.0 and rows[4]["value"] == 0.0  # umbra of the box
+    assert rows[0]["value"] > 0.0 and rows[7]["value"] > 0.0  # fully lit
+
+
+def test_reference_selected_receivers(cli):
+    """--receivers picks the rows, in the order given."""
+    data = json.loads(cli("reference", "occluded-quad", "--json", "--receivers", "7,0").out)
+    assert [r["index"] for r in data["receivers"]] == [7, 0]
+
+
+def test_estimate_json(cli):
+    """`warpis estimate occluded-quad --estimator independent:single:light-area --n 8
+    --trials 50 --json` has the documented schema; the variance lies in its interval,
+    the stderr is sqrt(variance / trials), and with the fixed seed each mean lies within
+    5 combined standard errors of the reference (deterministic: the same numbers every
+    run); umbra receivers estimate exactly 0 with zero variance."""
+    result = cli(*ESTIMATE)
+    assert result.status == 0, result.err
+    data = json.loads(result.out)
+    assert {"scene", "estimator", "n", "trials", "seed", "receivers"} <= set(data)
+    assert (data["scene"], data["estimator"], data["n"], data["trials"], data["seed"]) == (
+        "occluded-quad", "independent:single:light-area", 8, 50, 0)
+    rows = data["receivers"]
+    assert [r["index"] for r in rows] == list(range(8))
+    for r in rows:
+        assert {"index", "mean", "stderr", "variance", "variance_ci", "reference", "reference_stderr"} <= set(r)
+        lo, hi = r["variance_ci"]
+        assert lo <= r["variance"] <= hi
+        assert r["stderr"] == pytest.approx(math.sqrt(r["variance"] / 50), rel=1e-6, abs=1e-15)
+        se = math.hypot(r["stderr"], r["reference_stderr"])
+        assert abs(r["mean"] - r["reference"]) <= 5 * se + 1e-12
+    for umbra in (3, 4):
+        assert rows[umbra]["mean"] == 0.0 and rows[umbra]["variance"] == 0.0
+
+
+def test_estimate_is_reproducible(cli):
+    """The same command twice gives identical JSON (counter-based random numbers)."""
+    first = json.loads(cli(*ESTIMATE, "--receivers", "1,5").out)
+    second = json.loads(cli(*ESTIMATE, "--receivers", "1,5").out)
+    assert first == second
+    assert [r["index"] for r in first["receivers"]] == [1, 5]
+    assert all(r["variance"] > 0 for r in first["receivers"])
+
+
+BAD_OPTIONS = {
+    "estimator-not-three-parts": (["--estimator", "light-area"], "PATTERN:COMBINER:TECH"),
+    "unknown-pattern": (["--estimator", "sobolish:single:light-area"], "unknown pattern"),
+    "unknown-combiner": (["--estimator", "independent:average:light-area"], "unknown combiner"),
+    "unknown-technique": (["--estimator", "independent:single:torch"], "unknown technique"),
+    "single-with-two-techniques": (["--estimator", "independent:single:light-area+cosine"], "exactly one"),
+    "balance-with-one-technique": (["--estimator", "independent:balance:cosine"], "two or more"),
+    "n-not-divisible": (["--estimator", "independent:balance:light-area+cosine", "--n", "7"], "divisible"),
+    "odd-n-antithetic": (["--estimator", "antithetic:single:cosine", "--n", "7"], "even number"),
+    "odd-m-jittered-antithetic": (["--estimator", "jittered-antithetic:balance:light-area+cosine", "--n", "6"],
+                                  "even number of samples per technique"),
+    "n-zero": (["--n", "0"], "argument --n"),
+    "n-not-a-number": (["--n", "eight"], "argument --n"),
+    "trials-one": (["--trials", "1"], "--trials"),
+    "receivers-not-numbers": (["--receivers", "a,b"], "--receivers"),
+    "receivers-empty": (["--receivers", ","], "--receivers is empty"),
+    "receiver-out-of-range": (["--receivers", "0,8"], "receiver 8"),
+    "negative-receiver": (["--receivers", "-1"], "receiver -1"),
+    "unknown-option": (["--samples-per-pixel", "4"], "--samples-per-pixel"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_OPTIONS))
+def test_estimate_bad_options(case, cli):
+    """Each bad estimator spec or option of `warpis estimate` (malformed or unknown
+    pattern, combiner or technique, wrong technique count, N not divisible by the
+    techniques, odd N for antithetic, bad N/trials, bad --receivers) exits 2 with one
+    `warpis: error:` line that names the problem, and prints nothing on stdout."""
+    extra, words = BAD_OPTIONS[case]
+    base = {"--estimator": "independent:single:light-area", "--n": "8", "--trials": "20"}
+    args = ["estimate", "occluded-quad"]
+    for key, value in base.items():
+        if key not in extra:
+            args += [key, value]
+    line = _one_error_line(cli(*args, *extra))
+    assert words in line, line
+
+
+def test_estimate_bad_option_in_a_process():
+    """A bad estimator spec in a fresh process: exit 2, one error line, no traceback."""
+    line = _one_error_line(run_warpis("estimate", "occluded-quad", "--estimator", "antithetic:single:cosine",
+                                      "--n", "3", "--trials", "10"))
+    assert "even" in line
+
+
+@pytest.mark.parametrize("args", [["reference", "occluded-quad", "--receivers", "99"],
+                                  ["reference", "no-such-scene"],
+                                  ["info", "occluded-quad", "--bogus"],
+                                  ["reference", "occluded-quad", "--samples", "0"]])
+def test_other_bad_arguments(args, cli):
+    """Bad arguments to the other commands (receiver out of range, unknown scene,
+    unknown option, zero samples) exit 2 with one error line."""
+    _one_error_line(cli(*args))

@@ -1,0 +1,299 @@
+"""Estimators are unbiased on every bundled scene, deterministic, and match closed-form variances.
+
+Statistical thresholds.  The mean of M = 4000 trials is compared with the reference by
+z = (mean − reference)/sqrt(se_mean² + se_ref²).  Over all comparisons of
+``test_every_estimator_is_unbiased`` (K of them, counted in the test) the per-comparison
+threshold is the two-sided Bonferroni bound z* = Φ⁻¹(1 − α/(2K)) with α = 1e-3, so the
+whole test fails by chance with probability ≤ 1e-3 under the normal approximation of the
+mean of 4000 trials.  That approximation needs enough non-zero estimates; the BSDF-blind
+techniques (uniform, cosine) are therefore held only at receivers where they meet the
+light in at least ~13% of the trials (``BLIND_RECEIVERS``): on veach-plates a uniform
+direction almost never meets the small lights in a glossy lobe, and the mean of 4000
+trials there is far from normal (it is still unbiased, but no finite test could tell).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+import warpis
+from warpis.engine import run_trials
+from warpis.estimators import COMBINERS, Estimator, parse_estimator
+from warpis.patterns import PATTERNS
+from warpis.reference import reference
+from warpis.stats import normal_quantile, variance_interval
+from warpis.techniques import direction_pdf, sample_directions
+from warpis.integrand import evaluate_integrand
+
+TRIALS = 4000
+N = 12  # divisible by 2 and 3, even per technique: every combination below can take it
+ALPHA = 1e-3
+DIFFUSE_TECHNIQUES = ("uniform", "cosine", "light-area", "light-power", "light-solid-angle")
+BLIND = ("uniform", "cosine")
+# Receivers where BSDF-blind sampling meets the light often enough for a normal mean.
+BLIND_RECEIVERS = {"veach-plates": [2, 3, 6, 7, 11, 15]}
+
+
+def scene_techniques(scene: warpis.Scene) -> tuple[str, ...]:
+    glossy = (scene.receivers.material == 2).any()
+    return DIFFUSE_TECHNIQUES + (("phong",) if glossy else ())
+
+
+def estimators_for(scene: warpis.Scene) -> list[Estimator]:
+    """Every pattern × every combiner over a representative set of technique tuples."""
+    techs = scene_techniques(scene)
+    bsdf = "phong" if "phong" in techs else "cosine"
+    sets = [("light-area", bsdf), ("light-solid-angle", bsdf), ("light-power", "uniform"),
+            ("light-area", "light-solid-angle", bsdf)]
+    out = []
+    for pattern in PATTERNS:
+        out += [Estimator(pattern, "single", (t,)) for t in techs]
+        out += [Estimator(pattern, c, s) for c in ("mixture", "balance", "power") for s in sets]
+    return out
+
+
+def receivers_for(scene_name: str, est: Estimator, count: int) -> list[int]:
+    if any(t in BLIND for t in est.techniques) and scene_name in BLIND_RECEIVERS:
+        return BLIND_RECEIVERS[scene_name]
+    return list(range(count))
+
+
+class _References(dict):
+    """Scene name → (scene, {receiver: (reference, stderr)}), computed on first use."""
+
+    def __missing__(self, name: str):
+        scene = warpis.load_scene(name)
+        self[name] = (scene, {r.index: (r.value, r.stderr) for r in reference(scene)})
+        return self[name]
+
+
+@pytest.fixture(scope="module")
+def references() -> _References:
+    return _References()
+
+
+@pytest.mark.parametrize("name", warpis.bundled_scenes())
+def test_every_estimator_is_unbiased(references, name):
+    """Every pattern × combiner × technique set: mean within z* of the reference.
+
+    False-failure probability ≤ 2.5e-4 per scene, 1e-3 over the four bundled scenes
+    (Bonferroni over all comparisons of a scene).
+    """
+    scene, refs = references[name]
+    cells = []
+    for est in estimators_for(scene):
+        rx = receivers_for(name, est, len(scene.receivers))
+        values = run_trials(scene, est, N, TRIALS, seed=11, receivers=rx)
+        for r, row in zip(rx, values):
+            cells.append((name, est.spec, r, row.mean(), row.std(ddof=1) / np.sqrt(TRIALS), *refs[r]))
+    k = len(cells)
+    z_star = float(normal_quantile(1 - ALPHA / 4 / (2 * k)))
+    failures = []
+    for name, spec, r, mean, se, ref, ref_se in cells:
+        se_total = np.hypot(se, ref_se)
+        if se_total == 0:
+            if mean != ref:
+                failures.append(f"{name} {spec} receiver {r}: {mean} != {ref} with zero spread")
+            continue
+        z = (mean - ref) / se_total
+        if abs(z) > z_star:
+            failures.append(f"{name} {spec} receiver {r}: mean {mean:.6g} reference {ref:.6g} z = {z:.2f}")
+    assert k >= 8 * len(estimators_for(scene)) // 2
+    assert not failures, f"{len(failures)} of {k} cells beyond z* = {z_star:.2f}:\n" + "\n".join(failures[:20])
+
+
+def _integral_of_f_times_g(scene: warpis.Scene, receiver: int, technique: str, samples: int = 1 << 18,
+                           seed: int = 5) -> tuple[float, float]:
+    """∫ f g dω by IS from light-solid-angle + the technique (a mixture), with its stderr."""
+    rng = np.random.default_rng(seed)
+    half = samples // 2
+    dirs = []
+    for tech in ("light-solid-angle", technique):
+        d, _ = sample_directions(scene, receiver, tech, rng.random((half, 2)))
+        dirs.append(d)
+    d = np.vstack(dirs)
+    valid = np.linalg.norm(d, axis=1) > 0
+    mix = 0.5 * (direction_pdf(scene, receiver, "light-solid-angle", d) + direction_pdf(scene, receiver, technique, d))
+    fg = evaluate_integrand(scene, receiver, d) * direction_pdf(scene, receiver, technique, d)
+    h = np.where(valid & (mix > 0), fg / np.where(mix > 0, mix, 1.0), 0.0)
+    # The two halves are stratified by technique, so the mixture estimate is the mean of
+    # the per-technique means, each with its own variance.
+    a, b = h[:half], h[half:]
+    return float(0.5 * (a.mean() + b.mean())), float(0.5 * np.hypot(a.std(ddof=1) / np.sqrt(half),
+                                                                     b.std(ddof=1) / np.sqrt(half)))
+
+
+@pytest.mark.parametrize("scene_name,technique", [("occluded-quad", "cosine"), ("occluded-quad", "light-area"),
+                                                  ("two-lights", "uniform"), ("veach-plates", "phong")])
+def test_biased_estimator_converges_to_integral_of_f_times_g(references, scene_name, technique):
+    """Seed eq. 18/19: the unweighted mean of f over X ~ g converges to ∫ f g, not to F.
+
+    Four scenes × receivers compared at |z| ≤ 4.5 (two-sided 6.8e-6 each; union bound
+    over ≤ 40 comparisons: false failure < 3e-4).
+    """
+    scene, refs = references[scene_name]
+    rx = list(range(min(len(scene.receivers), 8)))
+    values = run_trials(scene, f"independent:biased:{technique}", 16, TRIALS, seed=3, receivers=rx)
+    for r, row in zip(rx, values):
+        target, target_se = _integral_of_f_times_g(scene, r, technique)
+        se = np.hypot(row.std(ddof=1) / np.sqrt(TRIALS), target_se)
+        if se == 0:
+            assert row.mean() == target
+            continue
+        assert abs(row.mean() - target) <= 4.5 * se, (r, row.mean(), target, se)
+        if refs[r][0] > 0 and target > 0:
+            assert not np.isclose(target, refs[r][0], rtol=1e-2), "∫ f g should differ from F here"
+
+
+# --------------------------------------------------------------------------- determinism
+
+
+@pytest.fixture(scope="module")
+def quad():
+    return warpis.load_scene("occluded-quad")
+
+
+@pytest.mark.parametrize("spec", ["jittered:balance:light-area+cosine", "antithetic:mixture:light-solid-angle+uniform",
+                                  "jittered-antithetic:power:light-power+cosine"])
+def test_results_are_bit_identical_across_threads_and_chunks(quad, spec):
+    """Random numbers depend on (seed, receiver, trial, technique, sample, dim) only."""
+    a = run_trials(quad, spec, 16, 301, seed=9, threads=1, chunk=301)
+    b = run_trials(quad, spec, 16, 301, seed=9, threads=2, chunk=7)
+    c = run_trials(quad, spec, 16, 301, seed=9, threads=2, chunk=64)
+    assert np.array_equal(a, b) and np.array_equal(a, c)
+
+
+def test_results_do_not_depend_on_receiver_order(quad):
+    """Receiver r's trials are the same whichever receivers run beside it."""
+    full = run_trials(quad, "jittered:single:light-area", 8, 100, seed=2)
+    picked = run_trials(quad, "jittered:single:light-area", 8, 100, seed=2, receivers=[6, 1, 5])
+    assert np.array_equal(picked, full[[6, 1, 5]])
+
+
+def test_trials_are_a_prefix_of_longer_runs(quad):
+    """Trial t is the same estimate in a run of 50 or 500 trials (resumable studies rely on it)."""
+    short = run_trials(quad, "independent:single:cosine", 8, 50, seed=4)
+    long = run_trials(quad, "independent:single:cosine", 8, 500, seed=4)
+    assert np.array_equal(short, long[:, :50])
+
+
+def test_different_seeds_give_uncorrelated_trials(quad):
+    """Seeds 0 and 1: correlation of paired estimates is within 4.5/√M of 0 (false failure 7e-6)."""
+    a = run_trials(quad, "independent:single:light-area", 4, 4000, seed=0, receivers=[1])[0]
+    b = run_trials(quad, "independent:single:light-area", 4, 4000, seed=1, receivers=[1])[0]
+    assert abs(np.corrcoef(a, b)[0, 1]) < 4.5 / np.sqrt(4000)
+    assert not np.array_equal(a, b)
+
+
+# --------------------------------------------------------------------------- closed-form variances
+
+
+@pytest.fixture(scope="module")
+def dome(tmp_path_factory):
+    """A receiver at the centre of a closed, inward-facing sphere of radiance 2, nothing else."""
+    import trimesh
+
+    d = tmp_path_factory.mktemp("dome")
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    sphere.invert()  # front faces inwards
+    sphere.export(d / "dome.obj")
+    (d / "scene.toml").write_text(
+        'name = "dome"\n[[mesh]]\npath = "dome.obj"\nemission = 2.0\n'
+        '[receivers]\npoints = [[0.0, 0.0, 0.0], [1.0, 2.0, 0.5]]\nnormals = [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]]\n'
+        '[material]\ntype = "irradiance"\n')
+    return warpis.load_scene(d / "scene.toml")
+
+
+def _inside(measured: np.ndarray, predicted: float, z: float = 4.5) -> None:
+    v = variance_interval(measured)
+    assert np.all(np.abs(v.variance - predicted) <= z * v.variance_stderr), (v.variance, predicted, v.variance_stderr)
+
+
+def test_uniform_sampling_of_a_constant_dome_has_the_closed_form_variance(dome):
+    """f/pdf = 2πL cos θ with cos θ ~ U(0,1): Var = (2πL)²/12 per sample, /N for N samples.
+
+    |s² − V| ≤ 4.5·se(s²) per receiver (2 receivers; false failure ≈ 1.4e-5).
+    """
+    n, trials, radiance = 8, 20000, 2.0
+    values = run_trials(dome, "independent:single:uniform", n, trials, seed=1)
+    assert np.allclose(values.mean(axis=1), np.pi * radiance, rtol=5e-3)
+    _inside(values, (2 * np.pi * radiance) ** 2 / 12 / n)
+
+
+def test_jittered_uniform_sampling_of_a_constant_dome_has_the_closed_form_variance(dome):
+    """Jittered on a rows × cols grid: cos θ = u.x is uniform within a cell of width 1/cols,
+    so Var = (2πL)² / (12 N cols²)."""
+    n, trials, radiance = 12, 20000, 2.0  # grid 3 × 4
+    values = run_trials(dome, "jittered:single:uniform", n, trials, seed=1)
+    _inside(values, (2 * np.pi * radiance) ** 2 / (12 * n * 4**2))
+
+
+def test_cosine_sampling_of_a_constant_dome_has_zero_variance(dome):
+    """f/pdf = πL exactly for every cosine-weighted sample."""
+    values = run_trials(dome, "independent:single:cosine", 8, 100, seed=1)
+    assert np.allclose(values, np.pi * 2.0, rtol=1e-5)
+
+
+def test_antithetic_uniform_sampling_of_a_dome_cancels_exactly(dome):
+    """Antithetic pairs cos θ = u and 1 − u: their mean 2πL·½ is exact, variance 0."""
+    values = run_trials(dome, "antithetic:single:uniform", 8, 100, seed=1)
+    assert np.allclose(values, np.pi * 2.0, rtol=1e-5)
+
+
+def test_jittered_beats_independent_widely_on_a_smooth_receiver(quad, references):
+    """Lit, unoccluded receiver 0 of occluded-quad at N = 256.
+
+    Light sampling maps u smoothly onto the light: the variance ratio exceeds 10.  Cosine
+    sampling sees the light's edge as a discontinuity in u (variance ~N^-1.5 under
+    jittering), so its ratio is ~√N-like: it must still exceed 3.  Both variances carry
+    fourth-moment intervals and the ratio of the interval ends (worst case) is tested.
+    """
+    ref = references["occluded-quad"][1][0]
+    assert ref[1] == 0.0, "receiver 0 should be closed-form (unoccluded)"
+    for tech, factor in (("light-area", 10), ("light-solid-angle", 10), ("cosine", 3)):
+        ind = variance_interval(run_trials(quad, f"independent:single:{tech}", 256, 2000, seed=7, receivers=[0])[0])
+        jit = variance_interval(run_trials(quad, f"jittered:single:{tech}", 256, 2000, seed=7, receivers=[0])[0])
+        assert ind.lo / jit.hi > factor, (tech, ind.variance, jit.variance)
+
+
+# --------------------------------------------------------------------------- specs
+
+
+@pytest.mark.parametrize("spec,n,needle", [
+    ("jittered:balance:light-area+cosine", 7, "not divisible"),
+    ("antithetic:single:cosine", 7, "even"),
+    ("jittered-antithetic:balance:light-area+cosine", 6, "even"),
+    ("independent:single:light-area+cosine", 8, "exactly one technique"),
+    ("independent:balance:cosine", 8, "two or more"),
+    ("independent:biased:cosine+uniform", 8, "exactly one technique"),
+    ("stratified:single:cosine", 8, "unknown pattern"),
+    ("independent:heuristic:cosine", 8, "unknown combiner"),
+    ("independent:single:bsdf", 8, "unknown technique"),
+    ("independent:balance:cosine+cosine", 8, "twice"),
+    ("independent-single-cosine", 8, "PATTERN:COMBINER"),
+])
+def test_invalid_estimators_get_one_line_errors_that_list_what_is_valid(spec, n, needle):
+    with pytest.raises(warpis.WarpisError) as err:
+        parse_estimator(spec).check_n(n)
+    message = str(err.value)
+    assert needle in message and "\n" not in message
+    assert spec.split(":")[0] in message or spec in message
+
+
+def test_every_combination_of_the_vocabulary_parses_or_explains():
+    """Every pattern × combiner × 1–2 techniques either runs or gives a one-line reason."""
+    from warpis.techniques import TECHNIQUES
+
+    for pattern, combiner in itertools.product(PATTERNS, COMBINERS):
+        for k in (1, 2):
+            for techs in itertools.combinations(TECHNIQUES, k):
+                try:
+                    est = Estimator(pattern, combiner, techs)
+                except warpis.WarpisError as exc:
+                    assert "\n" not in str(exc)
+                    continue
+                assert parse_estimator(est.spec) == est
+                est.check_n(4)

@@ -1,0 +1,737 @@
+"""Tests of warpis.scene: the scene-file loader, its validation, and the Warp mesh it builds.
+
+Three parts:
+
+* the loader on the bundled scenes and on small scenes written here (counts, emitter
+  areas and CDFs, receivers and materials, transforms, receiver groups and grids, every
+  mesh format trimesh reads);
+* bad input: each gives a :class:`WarpisError` with a one-line message naming the file
+  and the problem, and through the command line exit status 2 with one
+  ``warpis: error:`` line on stderr and nothing on stdout;
+* ray casting through ``scene.data.mesh`` (``wp.mesh_query_ray``) against a brute-force
+  float64 Möller–Trumbore first hit over every triangle, on rays from each receiver's
+  shading point to the emitters.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from conftest import BUNDLED, floor_entry, light_entry, quad, run_warpis, write_mesh, write_scene
+
+import warpis
+from warpis.errors import WarpisError
+from warpis.integrand import incident_radiance
+from warpis.scene import MATERIALS, RAY_EPSILON, SceneData, load_scene
+
+MESHES = Path(str(resources.files("warpis.meshes")))
+
+# Hand-counted from meshes/*/: (triangles, emitter triangles, receivers, emitter area, Σ L·A).
+# veach-plates' spheres are tessellated, so its area and power are derived from the
+# sphere mesh's own area (see test_bundled_counts_and_totals).
+EXPECTED = {
+    "occluded-quad": (16, 2, 8, 0.5, 5.0),
+    "two-lights": (18, 4, 8, 0.01 + 9.0, 2000 * 0.01 + 2 * 9.0),
+    "heavy-occluder": (81924, 2, 8, 0.36, 3.6),
+    "veach-plates": (1288, 1280, 16, None, None),
+}
+
+
+def _toml(scene: warpis.Scene) -> dict:
+    with open(scene.path, "rb") as fh:
+        return tomllib.load(fh)
+
+
+def _trimesh(path: Path) -> trimesh.Trimesh:
+    return trimesh.load(str(path), force="mesh", process=False)
+
+
+# =========================================================================== bundled scenes
+
+
+def test_bundled_scene_names():
+    """bundled_scenes() lists exactly the four scenes shipped in meshes/."""
+    assert warpis.bundled_scenes() == sorted(BUNDLED)
+
+
+def test_bundled_counts_and_totals(bundled_scene):
+    """Triangle, emitter-triangle and receiver counts and the emitter area and power
+    totals are the hand-counted ones, and agree mesh by mesh with trimesh's own reading
+    of each file (face count, and area × scale² for every emitter mesh)."""
+    s = bundled_scene
+    triangles, emitter_triangles, receivers, area, power = EXPECTED[s.name]
+    assert (s.triangle_count, s.emitter_count, len(s.receivers)) == (triangles, emitter_triangles, receivers)
+
+    doc = _toml(s)
+    expect_area = expect_power = 0.0
+    for i, entry in enumerate(doc["mesh"]):
+        m = _trimesh(s.path.parent / entry["path"])
+        mine = s.triangle_mesh == i
+        assert mine.sum() == len(m.faces)
+        emission = entry.get("emission", 0.0)
+        assert np.all(s.emission[mine] == emission)
+        if emission > 0:
+            scale = entry.get("transform", {}).get("scale", 1.0)
+            assert np.isscalar(scale), "bundled emitters are scaled uniformly"
+            expect_area += m.area * scale**2
+            expect_power += emission * m.area * scale**2
+            in_mesh = s.triangle_mesh[s.emitters] == i
+            assert in_mesh.sum() == len(m.faces)
+            np.testing.assert_allclose(s.emitter_areas[in_mesh].sum(), m.area * scale**2, rtol=1e-9)
+    if area is not None:
+        # the OBJ files store 6-7 significant digits
+        np.testing.assert_allclose(expect_area, area, rtol=1e-6)
+        np.testing.assert_allclose(expect_power, power, rtol=1e-6)
+    np.testing.assert_allclose(s.total_emitter_area, expect_area, rtol=1e-9)
+    np.testing.assert_allclose(s.total_power, expect_power, rtol=1e-9)
+    summary = s.summary()
+    assert summary["triangles"] == triangles and summary["emitter_triangles"] == emitter_triangles
+    assert summary["receivers"] == receivers
+
+
+def test_emitter_cdfs(bundled_scene):
+    """The area and power CDFs have E + 1 entries, start at 0, end at exactly 1, never
+    decrease, and their steps are each emitter triangle's share of area and of power."""
+    s = bundled_scene
+    areas = s.emitter_areas
+    power = areas * s.emitter_radiance
+    for name, weights in (("area_cdf", areas), ("power_cdf", power)):
+        cdf = getattr(s.data, name).numpy().astype(np.float64)
+        assert cdf.shape == (s.emitter_count + 1,), name
+        assert cdf[0] == 0.0 and cdf[-1] == 1.0, name
+        assert np.all(np.diff(cdf) >= 0.0), name
+        np.testing.assert_allclose(np.diff(cdf), weights / weights.sum(), atol=1e-6, err_msg=name)
+    assert np.all(areas > 0)
+
+
+def test_warp_data_mirrors_numpy(bundled_scene):
+    """scene.data holds the same geometry, emission and emitter tables as the numpy
+    scene (to float32), and scene.receiver_data the same receivers."""
+    s = bundled_scene
+    d = s.data
+    np.testing.assert_array_equal(d.points.numpy(), s.vertices.astype(np.float32))
+    np.testing.assert_array_equal(d.indices.numpy(), s.triangles.reshape(-1))
+    np.testing.assert_array_equal(d.tri_emission.numpy(), s.emission.astype(np.float32))
+    np.testing.assert_array_equal(d.emitter_tri.numpy(), s.emitters)
+    np.testing.assert_array_equal(d.emitter_area.numpy(), s.emitter_areas.astype(np.float32))
+    assert np.all(s.emission[s.emitters] > 0) and np.count_nonzero(s.emission) == s.emitter_count
+    assert d.emitter_count == s.emitter_count
+    np.testing.assert_allclose(d.total_area, s.total_emitter_area, rtol=1e-6)
+    np.testing.assert_allclose(d.total_power, s.total_power, rtol=1e-6)
+    np.testing.assert_allclose(d.ray_eps, RAY_EPSILON * s.diagonal, rtol=1e-6)
+    r = s.receiver_data
+    np.testing.assert_allclose(r.position.numpy(), s.receivers.positions, atol=1e-6)
+    np.testing.assert_allclose(r.normal.numpy(), s.receivers.normals, atol=1e-6)
+    np.testing.assert_array_equal(r.material.numpy(), s.receivers.material)
+
+
+def test_bundled_receivers_and_materials(bundled_scene):
+    """Receivers are where the scene file puts them, with unit normals along the written
+    normal, and each group's material (type, albedo, exponent, unit view) is the one
+    written, per [[receivers]] group where a group has its own."""
+    s = bundled_scene
+    rx = s.receivers
+    np.testing.assert_allclose(np.linalg.norm(rx.normals, axis=1), 1.0, atol=1e-12)
+    doc = _toml(s)
+    groups = doc["receivers"] if isinstance(doc["receivers"], list) else [doc["receivers"]]
+    assert len(rx.group_names) == len(groups)
+    start = 0
+    for g, spec in enumerate(groups):
+        points = np.array(spec["points"], dtype=float)
+        rows = slice(start, start + len(points))
+        start += len(points)
+        assert np.all(rx.group[rows] == g)
+        if "name" in spec:
+            assert rx.group_names[g] == spec["name"]
+        np.testing.assert_array_equal(rx.positions[rows], points)
+        n = np.array(spec["normal"], dtype=float)
+        np.testing.assert_allclose(rx.normals[rows], np.tile(n / np.linalg.norm(n), (len(points), 1)), atol=1e-12)
+        mat = spec.get("material", doc.get("material"))
+        assert np.all(rx.material[rows] == MATERIALS[mat["type"]])
+        np.testing.assert_allclose(rx.albedo[rows], mat.get("albedo", 1.0))
+        if mat["type"] == "phong":
+            np.testing.assert_allclose(rx.exponent[rows], mat["exponent"])
+            v = np.array(mat["view"], dtype=float)
+            np.testing.assert_allclose(rx.view[rows], np.tile(v / np.linalg.norm(v), (len(points), 1)), atol=1e-12)
+    assert start == len(rx)
+    if s.name == "veach-plates":
+        assert rx.group_names == ["plate-1", "plate-2", "plate-3", "plate-4"]
+        assert [rx.exponent[rx.group == g][0] for g in range(4)] == [10.0, 50.0, 300.0, 2000.0]
+        assert {rx.material_name(i) for i in range(len(rx))} == {"phong"}
+    else:
+        assert {rx.material_name(i) for i in range(len(rx))} == {"irradiance"}
+
+
+# =========================================================================== small scenes
+
+# One triangle with corners on the axes, so every image is easy to compute by hand.
+TRIANGLE = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+TRANSFORMS = {
+    # translate only
+    "translate": ({"translate": [1.0, 2.0, 3.0]},
+                  [[2, 2, 3], [1, 3, 3], [1, 2, 4]]),
+    # uniform scale
+    "scale": ({"scale": 2.0},
+              [[2, 0, 0], [0, 2, 0], [0, 0, 2]]),
+    # per-axis scale
+    "scale-xyz": ({"scale": [2.0, 3.0, 4.0]},
+                  [[2, 0, 0], [0, 3, 0], [0, 0, 4]]),
+    # right-handed 90° about +z: x → y, y → −x
+    "rotate-z": ({"rotate": {"axis": [0, 0, 1], "degrees": 90}},
+                 [[0, 1, 0], [-1, 0, 0], [0, 0, 1]]),
+    # right-handed 90° about +x: y → z, z → −y
+    "rotate-x": ({"rotate": {"axis": [1, 0, 0], "degrees": 90}},
+                 [[1, 0, 0], [0, 0, 1], [0, -1, 0]]),
+    # right-handed 90° about +y: z → x, x → −z; the axis need not be unit length
+    "rotate-y": ({"rotate": {"axis": [0, 5, 0], "degrees": 90}},
+                 [[0, 0, -1], [0, 1, 0], [1, 0, 0]]),
+    # 120° about (1,1,1) cycles the axes: x → y → z → x
+    "rotate-diagonal": ({"rotate": {"axis": [1, 1, 1], "degrees": 120}},
+                        [[0, 1, 0], [0, 0, 1], [1, 0, 0]]),
+    # scale (2,3,4), then 90° about z, then translate: (1,0,0) → (2,0,0) → (0,2,0) → (1,4,3);
+    # rotating first would give (0,3,0) → (1,5,3) instead
+    "scale-rotate-translate": ({"translate": [1.0, 2.0, 3.0], "scale": [2.0, 3.0, 4.0],
+                                "rotate": {"axis": [0, 0, 1], "degrees": 90}},
+                               [[1, 4, 3], [-2, 2, 3], [1, 2, 7]]),
+}
+
+
+@pytest.mark.parametrize("case", list(TRANSFORMS))
+def test_transform(case, tmp_path):
+    """A [[mesh]] transform applies scale (scalar or per-axis), then a right-handed
+    rotation about the (normalised) axis, then translation: the loaded triangle's corners
+    are the hand-computed ones, in the numpy scene and in the Warp mesh."""
+    transform, expected = TRANSFORMS[case]
+    path = write_scene(tmp_path, meshes=[
+        {"path": "tri.obj", "vertices": TRIANGLE, "faces": [[0, 1, 2]], "transform": transform},
+        light_entry(height=5.0)])
+    s = load_scene(path)
+    corners = s.triangle_vertices(np.flatnonzero(s.triangle_mesh == 0))
+    np.testing.assert_allclose(corners[0], expected, atol=1e-12)
+    warp_points = s.data.points.numpy()[s.data.indices.numpy()[:3]]
+    np.testing.assert_allclose(warp_points, expected, atol=1e-6)
+
+
+def test_transform_of_an_emitter(tmp_path):
+    """A transformed emitter's triangles, areas and power follow the transform: scale
+    [2, 3, 1] multiplies a horizontal light's area by 6, rotation keeps it, and the
+    light's centre lands on the translation."""
+    light = light_entry(height=0.0, half=0.5, emission=4.0,
+                        transform={"scale": [2.0, 3.0, 1.0], "rotate": {"axis": [0, 0, 1], "degrees": 30},
+                                   "translate": [0.5, -0.25, 2.0]})
+    s = load_scene(write_scene(tmp_path, meshes=[floor_entry(), light]))
+    np.testing.assert_allclose(s.total_emitter_area, 6.0, rtol=1e-12)
+    np.testing.assert_allclose(s.total_power, 24.0, rtol=1e-12)
+    centre = s.vertices[np.unique(s.triangles[s.emitters])].mean(axis=0)
+    np.testing.assert_allclose(centre, [0.5, -0.25, 2.0], atol=1e-12)
+
+
+def test_receiver_groups_with_materials(tmp_path):
+    """[[receivers]] groups keep their order, names and own materials (lambert, phong);
+    a group without a material takes the scene's [material]; per-point normals are
+    normalised; a view vector is normalised."""
+    groups = [
+        {"name": "diffuse", "points": [[0, 0, 0], [0.5, 0, 0]], "normals": [[0, 0, 2], [0, 1, 1]],
+         "material": {"type": "lambert", "albedo": 0.25}},
+        {"name": "glossy", "points": [[-0.5, 0, 0]], "normal": [0, 0, 1],
+         "material": {"type": "phong", "albedo": 0.5, "exponent": 20.0, "view": [0, -3, 4]}},
+        {"points": [[0, 0.5, 0]], "normal": [0, 0, 1]},
+    ]
+    s = load_scene(write_scene(tmp_path, receivers=groups, material={"type": "irradiance"}))
+    rx = s.receivers
+    assert len(rx) == 4
+    assert list(rx.group) == [0, 0, 1, 2]
+    assert rx.group_names[:2] == ["diffuse", "glossy"]
+    assert [rx.material_name(i) for i in range(4)] == ["lambert", "lambert", "phong", "irradiance"]
+    codes = [MATERIALS[m] for m in ("lambert", "lambert", "phong", "irradiance")]
+    np.testing.assert_array_equal(rx.material, codes)
+    np.testing.assert_allclose(rx.albedo, [0.25, 0.25, 0.5, 1.0])
+    assert rx.exponent[2] == 20.0
+    np.testing.assert_allclose(rx.view[2], [0, -0.6, 0.8], atol=1e-12)
+    np.testing.assert_allclose(rx.normals[:2], [[0, 0, 1], [0, math.sqrt(0.5), math.sqrt(0.5)]], atol=1e-12)
+    np.testing.assert_allclose(rx.positions, [[0, 0, 0], [0.5, 0, 0], [-0.5, 0, 0], [0, 0.5, 0]])
+    assert rx.grid_shape is None
+    np.testing.assert_array_equal(s.receiver_data.material.numpy(), rx.material)
+
+
+def test_grid_receivers(tmp_path):
+    """A grid gives one receiver per cell centre, resolution[0] × resolution[1] of them,
+    laid out so that positions.reshape(rows, cols) is an image (row j along edge_v,
+    column i along edge_u), with default normal = normalise(edge_u × edge_v)."""
+    origin, eu, ev = np.array([-1.0, -1.0, 0.0]), np.array([2.0, 0.0, 0.0]), np.array([0.0, 1.0, 1.0])
+    nu, nv = 4, 3
+    grid = {"origin": origin, "edge_u": eu, "edge_v": ev, "resolution": [nu, nv]}
+    s = load_scene(write_scene(tmp_path, receivers={"grid": grid}))
+    rx = s.receivers
+    assert len(rx) == nu * nv
+    assert rx.grid_shape == (nv, nu)
+    image = rx.positions.reshape(nv, nu, 3)
+    for j in range(nv):
+        for i in range(nu):
+            np.testing.assert_allclose(image[j, i], origin + (i + 0.5) / nu * eu + (j + 0.5) / nv * ev, atol=1e-12)
+    np.testing.assert_allclose(rx.normals, np.tile([0.0, -math.sqrt(0.5), math.sqrt(0.5)], (nu * nv, 1)), atol=1e-12)
+
+
+def test_grid_receivers_explicit_normal(tmp_path):
+    """An explicit normal overrides a grid's default one (normalised); a 1×1 grid is
+    its centre."""
+    grid = {"origin": [0, 0, 0], "edge_u": [1, 0, 0], "edge_v": [0, 1, 0], "resolution": [1, 1]}
+    s = load_scene(write_scene(tmp_path, receivers={"grid": grid, "normal": [0, 0, -3]}))
+    np.testing.assert_allclose(s.receivers.positions, [[0.5, 0.5, 0.0]])
+    np.testing.assert_allclose(s.receivers.normals, [[0.0, 0.0, -1.0]])
+
+
+def test_scene_by_name_path_or_directory(loaded_scenes, tmp_path):
+    """A bundled scene loads the same by name, by the path of its scene.toml (str or
+    Path) and by its directory; a written scene loads by file and by directory, and a
+    scene file not named scene.toml takes its name from the file's stem when it has none."""
+    by_name = loaded_scenes["occluded-quad"]
+    folder = MESHES / "occluded-quad"
+    for how in (folder / "scene.toml", str(folder / "scene.toml"), folder, str(folder)):
+        s = load_scene(how)
+        assert s.name == "occluded-quad"
+        assert s.path.resolve() == by_name.path.resolve()
+        np.testing.assert_array_equal(s.vertices, by_name.vertices)
+        np.testing.assert_array_equal(s.triangles, by_name.triangles)
+        np.testing.assert_array_equal(s.receivers.positions, by_name.receivers.positions)
+    path = write_scene(tmp_path)
+    assert load_scene(tmp_path).path == path == load_scene(path).path
+    other = write_scene(tmp_path, name=None, filename="my-room.toml")
+    assert load_scene(other).name == "my-room"
+
+
+@pytest.mark.parametrize("suffix", ["obj", "ply", "stl", "off", "glb"])
+def test_mesh_formats(suffix, tmp_path):
+    """The same light quad written as OBJ, PLY, STL, OFF or GLB (by trimesh's exporters)
+    loads with identical triangles: the same corner positions in the same order (STL has
+    no shared vertices, so corners are compared, not indices), the same area and the same
+    winding (front face down)."""
+    v, f = quad((0.25, -0.5, 1.5), (0.5, 0.75), "down")
+    light = {"path": f"light.{suffix}", "emission": 3.0}
+    write_mesh(tmp_path / light["path"], v, f)
+    s = load_scene(write_scene(tmp_path, meshes=[floor_entry(), light]))
+    corners = s.triangle_vertices(s.emitters)
+    np.testing.assert_allclose(corners, v[f], atol=1e-6)
+    np.testing.assert_allclose(s.total_emitter_area, 1.5, rtol=1e-6)
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert np.all(normals[:, 2] < 0)
+    if suffix != "stl":
+        tri = s.triangles[s.emitters] - s.triangles[s.emitters].min()
+        np.testing.assert_array_equal(tri, f)
+
+
+# =========================================================================== bad input
+
+
+def _light_with_vertex(value: float):
+    v, f = quad((0.0, 0.0, 1.0))
+    v[2, 2] = value
+    return {"path": "light.obj", "emission": 1.0, "vertices": v, "faces": f}
+
+
+_GRID = {"origin": [0, 0, 0], "edge_u": [1, 0, 0], "edge_v": [0, 1, 0], "resolution": [2, 2]}
+_DEGENERATE = {"path": "light.obj", "emission": 1.0,
+               "vertices": [[0, 0, 1], [1, 0, 1], [2, 0, 1]], "faces": [[0, 1, 2]]}
+
+# name → (write_scene keyword arguments, file named in the message (relative to the scene's
+# folder), words of the problem).  Each builds a scene that is wrong in exactly one way.
+BAD = {
+    "missing-mesh": (dict(meshes=[floor_entry(), {"path": "nowhere.obj", "emission": 1.0}]),
+                     "nowhere.obj", "mesh file not found"),
+    "garbage-ply": (dict(meshes=[floor_entry(), {"path": "light.ply", "emission": 1.0,
+                                                 "content": np.random.default_rng(7).bytes(512)}]),
+                    "light.ply", "trimesh cannot read"),
+    "obj-without-faces": (dict(meshes=[floor_entry(), {"path": "light.obj", "emission": 1.0,
+                                                       "content": "this is not a mesh\nat all\n"}]),
+                          "light.obj", "no triangles"),
+    "obj-bad-face": (dict(meshes=[floor_entry(), {"path": "light.obj", "emission": 1.0,
+                                                  "content": "v 0 0 1\nv 1 0 1\nv 0 1 1\nf 1 2 x\n"}]),
+                     "light.obj", "trimesh cannot read"),
+    "obj-face-out-of-range": (dict(meshes=[floor_entry(), {"path": "light.obj", "emission": 1.0,
+                                                           "content": "v 0 0 1\nv 1 0 1\nv 0 1 1\nf 1 2 9\n"}]),
+                              "light.obj", "cannot read"),
+    "nan-vertex": (dict(meshes=[floor_entry(), _light_with_vertex(math.nan)]), "light.obj", "NaN or infinite"),
+    "inf-vertex": (dict(meshes=[floor_entry(), _light_with_vertex(math.inf)]), "light.obj", "NaN or infinite"),
+    "minus-inf-vertex": (dict(meshes=[floor_entry(), _light_with_vertex(-math.inf)]), "light.obj", "NaN or infinite"),
+    "all-emitter-triangles-zero-area": (dict(meshes=[floor_entry(), _DEGENERATE]), "light.obj", "zero area"),
+    "negative-emission": (dict(meshes=[floor_entry(), light_entry(emission=-1.0)]), "scene.toml", "emission"),
+    "nan-emission": (dict(meshes=[floor_entry(), light_entry(emission=math.nan)]), "scene.toml", "emission"),
+    "inf-emission": (dict(meshes=[floor_entry(), light_entry(emission=math.inf)]), "scene.toml", "emission"),
+    "text-emission": (dict(meshes=[floor_entry(), light_entry(emission="bright")]), "scene.toml", "emission"),
+    "no-emitter": (dict(meshes=[floor_entry(), light_entry(emission=0.0)]), "scene.toml", "no emitter"),
+    "zero-normal": (dict(receivers={"points": [[0, 0, 0]], "normal": [0, 0, 0]}), "scene.toml", "zero length"),
+    "one-zero-normal": (dict(receivers={"points": [[0, 0, 0], [1, 0, 0]], "normals": [[0, 0, 1], [0, 0, 0]]}),
+                        "scene.toml", "zero length"),
+    "zero-grid-resolution": (dict(receivers={"grid": _GRID | {"resolution": [0, 4]}}), "scene.toml", "resolution"),
+    "unknown-top-key": (dict(extra={"colour": "red"}), "scene.toml", "unknown key 'colour'"),
+    "unknown-mesh-key": (dict(meshes=[floor_entry(), light_entry(emmission=3.0)]), "scene.toml",
+                         "unknown key 'emmission'"),
+    "unknown-transform-key": (dict(meshes=[floor_entry(transform={"shear": 0.5}), light_entry()]), "scene.toml",
+                              "unknown key 'shear'"),
+    "unknown-rotate-key": (dict(meshes=[floor_entry(transform={"rotate": {"axis": [0, 0, 1], "angle": 30}}),
+                                        light_entry()]),
+                           "scene.toml", "unknown key 'angle'"),
+    "unknown-receivers-key": (dict(receivers={"points": [[0, 0, 0]], "normal": [0, 0, 1], "offset": 0.1}),
+                              "scene.toml", "unknown key 'offset'"),
+    "unknown-grid-key": (dict(receivers={"grid": _GRID | {"spacing": 0.1}}), "scene.toml", "unknown key 'spacing'"),
+    "unknown-material-key": (dict(material={"type": "lambert", "albedo": 0.5, "roughness": 0.1}), "scene.toml",
+                             "unknown key 'roughness'"),
+    "unknown-group-material-key": (dict(receivers=[{"points": [[0, 0, 0]], "normal": [0, 0, 1],
+                                                    "material": {"type": "irradiance", "albedo": 0.5}}]),
+                                   "scene.toml", "unknown key 'albedo'"),
+    "unknown-material-type": (dict(material={"type": "mirror"}), "scene.toml", "'mirror'"),
+    "phong-without-view": (dict(material={"type": "phong", "albedo": 0.5, "exponent": 10.0}), "scene.toml",
+                           "missing key 'view'"),
+}
+
+
+def _bad_scene(case: str, tmp_path: Path) -> tuple[Path, str, str]:
+    """Write case ``case`` of BAD (or of the file-level cases) → (scene argument, file, problem)."""
+    if case == "invalid-toml":
+        path = tmp_path / "scene.toml"
+        path.write_text('name = "broken"\n[[mesh]\npath = "floor.obj"\n')
+        return path, str(path), "not valid TOML"
+    if case == "scene-not-utf8":
+        path = tmp_path / "scene.toml"
+        path.write_bytes(b'name = "caf\xe9"\n')
+        return path, str(path), "not UTF-8"
+    if case == "scene-file-not-found":
+        path = tmp_path / "absent" / "scene.toml"
+        return path, str(path), "no such scene file"
+    if case == "unknown-bundled-name":
+        return Path("occluded-quadd"), "occluded-quadd", "bundled: " + ", ".join(sorted(BUNDLED))
+    kwargs, file, problem = BAD[case]
+    path = write_scene(tmp_path, **kwargs)
+    return path, str(tmp_path / file), problem
+
+
+BAD_CASES = list(BAD) + ["invalid-toml", "scene-not-utf8", "scene-file-not-found", "unknown-bundled-name"]
+
+
+@pytest.mark.parametrize("case", BAD_CASES)
+def test_bad_scene_raises_one_line_error(case, tmp_path):
+    """Each bad scene raises WarpisError whose message is one line starting with the
+    offending file's path and naming the problem."""
+    scene, file, problem = _bad_scene(case, tmp_path)
+    with pytest.raises(WarpisError) as info:
+        load_scene(scene)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{file}: "), message
+    assert problem in message, message
+
+
+@pytest.mark.parametrize("case", BAD_CASES)
+def test_bad_scene_cli(case, tmp_path, cli):
+    """`warpis info` on each bad scene exits with status 2, prints exactly one line on
+    stderr, `warpis: error: <file>: <problem>`, no traceback and nothing on stdout."""
+    scene, file, problem = _bad_scene(case, tmp_path)
+    result = cli("info", scene)
+    assert result.status == 2
+    assert result.out == ""
+    assert len(result.err_lines) == 1, result.err
+    line = result.err_lines[0]
+    assert line.startswith(f"warpis: error: {file}: "), line
+    assert problem in line and "Traceback" not in result.err
+
+
+@pytest.mark.parametrize("case", ["garbage-ply", "nan-emission", "invalid-toml"])
+def test_bad_scene_cli_process(case, tmp_path):
+    """In a fresh process too (Warp's start-up notices included), a bad scene gives exit
+    status 2, one `warpis: error:` line on stderr and nothing on stdout."""
+    scene, file, problem = _bad_scene(case, tmp_path)
+    result = run_warpis("info", scene)
+    assert result.status == 2
+    assert result.out == ""
+    assert len(result.err_lines) == 1, result.err
+    assert result.err_lines[0].startswith(f"warpis: error: {file}: ")
+    assert problem in result.err and "Traceback" not in result.err
+
+
+def test_zero_area_emitter_triangles_dropped_with_warning(tmp_path, cli):
+    """Zero-area triangles of an emitter that keeps some area are dropped from the
+    emitters with a warning naming the mesh file (not an error); the CLI prints the
+    warning as `warpis: warning: ...` on stderr and still reports the scene."""
+    v, f = quad((0.0, 0.0, 1.0), 0.5, "down")
+    v = np.vstack([v, [[0.0, 0.0, 1.0], [0.1, 0.0, 1.0], [0.3, 0.0, 1.0]]])  # collinear: zero area
+    f = np.vstack([f, [[4, 5, 6]]])
+    path = write_scene(tmp_path, meshes=[floor_entry(), {"path": "light.obj", "emission": 2.0, "vertices": v,
+                                                         "faces": f}])
+    light = str(tmp_path / "light.obj")
+    with pytest.warns(UserWarning) as record:
+        s = load_scene(path)
+    messages = [str(w.message) for w in record]
+    assert any(m.startswith(f"{light}: ") and "zero-area" in m and "1 " in m for m in messages), messages
+    assert s.triangle_count == 5 and s.emitter_count == 2
+    assert s.emission[4] == 0.0 and 4 not in s.emitters
+    np.testing.assert_allclose(s.total_emitter_area, 1.0)
+
+    result = cli("info", path)
+    assert result.status == 0
+    warning_lines = [line for line in result.err_lines if line.startswith("warpis: warning:")]
+    assert len(warning_lines) == 1 and light in warning_lines[0] and "zero-area" in warning_lines[0]
+    assert "test-scene" in result.out and "Traceback" not in result.err
+
+
+# =========================================================================== ray casting
+
+FAR = 1.0e30
+EDGE_TOLERANCE = 1e-5  # barycentric, i.e. relative to the triangle's size
+DISTANCE_RTOL = 1e-4
+RANDOM_TARGETS = 200
+
+
+@wp.kernel
+def _cast_kernel(scene: SceneData, origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3),
+                 face: wp.array(dtype=wp.int32), dist: wp.array(dtype=wp.float32),
+                 sign: wp.array(dtype=wp.float32), radiance: wp.array(dtype=wp.float32)):
+    i = wp.tid()
+    q = wp.mesh_query_ray(scene.mesh, origins[i], dirs[i], FAR)
+    face[i] = -1
+    if q.result:
+        face[i] = q.face
+        dist[i] = q.t
+        sign[i] = q.sign
+    radiance[i] = incident_radiance(scene, origins[i], dirs[i])
+
+
+def warp_cast(scene: warpis.Scene, origins: np.ndarray, dirs: np.ndarray):
+    """First hit of each ray through the scene's Warp mesh: face (−1: miss), t, sign, and
+    the radiance warpis.integrand.incident_radiance returns."""
+    k = len(origins)
+    args = [wp.array(origins.astype(np.float32), dtype=wp.vec3), wp.array(dirs.astype(np.float32), dtype=wp.vec3)]
+    out = [wp.zeros(k, dtype=wp.int32), wp.zeros(k, dtype=wp.float32), wp.zeros(k, dtype=wp.float32),
+           wp.zeros(k, dtype=wp.float32)]
+    wp.launch(_cast_kernel, dim=k, inputs=[scene.data, *args, *out], device=scene.device)
+    return tuple(a.numpy() for a in out)
+
+
+def _passes_near(centre: np.ndarray, radius: np.ndarray, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Whether each ray (origin, unit dirs) can meet each sphere (centre, radius): (S, K) bool."""
+    to_centre = centre - origin
+    along = to_centre @ dirs.T
+    off2 = np.einsum("ij,ij->i", to_centre, to_centre)[:, None] - along**2
+    return (off2 <= radius[:, None] ** 2) & (along >= -radius[:, None])
+
+
+def _candidate_pairs(triangles: np.ndarray, origin: np.ndarray, dirs: np.ndarray, cells: int = 16):
+    """(ray, triangle) index pairs whose bounding spheres the ray passes through.
+
+    A conservative cull, so that brute force stays fast on 82k triangles: triangles are
+    grouped by the cell of a cells³ grid holding their centre; a ray is tested against
+    each group's bounding sphere, then against the bounding sphere of each triangle of
+    the groups it passes.  Spheres are enlarged by 0.1%, far more than EDGE_TOLERANCE
+    enlarges a triangle, so no pair that could hit is dropped.
+    """
+    centre = triangles.mean(axis=1)
+    radius = np.linalg.norm(triangles - centre[:, None], axis=2).max(axis=1) * (1 + 1e-3) + 1e-12
+    lo, hi = centre.min(axis=0), centre.max(axis=0)
+    cell = np.minimum(((centre - lo) / np.maximum(hi - lo, 1e-300) * cells).astype(np.int64), cells - 1)
+    key = (cell[:, 0] * cells + cell[:, 1]) * cells + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    _, start, count = np.unique(key[order], return_index=True, return_counts=True)
+    group_of = np.repeat(np.arange(len(start)), count)  # group of each triangle in `order`
+    group_centre = np.add.reduceat(centre[order], start) / count[:, None]
+    reach = np.linalg.norm(centre[order] - group_centre[group_of], axis=1) + radius[order]
+    group_radius = np.maximum.reduceat(reach, start) * (1 + 1e-3)
+    group, ray = np.nonzero(_passes_near(group_centre, group_radius, origin, dirs))
+    n = count[group]
+    offset = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    tri = order[np.repeat(start[group], n) + offset]
+    ray = np.repeat(ray, n)
+    to_centre = centre[tri] - origin
+    along = np.einsum("ij,ij->i", to_centre, dirs[ray])
+    off2 = np.einsum("ij,ij->i", to_centre, to_centre) - along**2
+    near = (off2 <= radius[tri] ** 2) & (along >= -radius[tri])
+    return ray[near], tri[near]
+
+
+def brute_first_hit(triangles: np.ndarray, origin: np.ndarray, dirs: np.ndarray, cull: bool = True):
+    """First hit of rays sharing one origin, by testing every ray against every triangle.
+
+    Every (ray, triangle) pair that :func:`_candidate_pairs` cannot rule out by bounding
+    spheres (every pair, with ``cull=False``) gets the exact float64 Möller–Trumbore
+    test; the first hit is the nearest.
+
+    Returns per ray: the first hit's face (−1: miss) and distance, whether that hit is on
+    the front face (the side the winding's normal points to), and whether the ray is
+    *ambiguous*: its first-hit face changes when every triangle is shrunk or enlarged by
+    EDGE_TOLERANCE in barycentric coordinates (it passes that close to an edge).
+    """
+    v0, e1, e2 = triangles[:, 0], triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]
+    k = len(dirs)
+    if cull:
+        ray, tri = _candidate_pairs(triangles, origin, dirs)
+    else:
+        ray, tri = (x.ravel() for x in np.meshgrid(np.arange(k), np.arange(len(triangles)), indexing="ij"))
+
+    # Möller–Trumbore on the pairs: det = e1·(d × e2), u = s·(d × e2)/det,
+    # v = d·(s × e1)/det, t = e2·(s × e1)/det, with s = origin − v0.
+    d, a, b = dirs[ray], e1[tri], e2[tri]
+    s = origin - v0[tri]
+    pvec = np.cross(d, b)
+    qvec = np.cross(s, a)
+    det = np.einsum("ij,ij->i", a, pvec)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / det
+        u = np.einsum("ij,ij->i", s, pvec) * inv
+        v = np.einsum("ij,ij->i", d, qvec) * inv
+        t = np.einsum("ij,ij->i", b, qvec) * inv
+        lowest = np.minimum(np.minimum(u, v), 1.0 - u - v)
+    valid = np.isfinite(inv) & (t > 0.0)
+
+    def nearest(inside: np.ndarray):
+        hit_t = np.where(valid & inside, t, np.inf)
+        order = np.lexsort((hit_t, ray))
+        first = order[np.flatnonzero(np.diff(ray[order], prepend=-1))]  # nearest per ray
+        first = first[np.isfinite(hit_t[first])]
+        face, dist, front = np.full(k, -1), np.full(k, np.inf), np.zeros(k, bool)
+        face[ray[first]] = tri[first]
+        dist[ray[first]] = hit_t[first]
+        front[ray[first]] = det[first] > 0.0  # det = −d·(e1 × e2) > 0: the ray meets the front
+        return face, dist, front
+
+    face, dist, front = nearest(lowest >= 0.0)
+    shrunk, _, _ = nearest(lowest >= EDGE_TOLERANCE)
+    enlarged, _, _ = nearest(lowest >= -EDGE_TOLERANCE)
+    return face, dist, front, shrunk != enlarged
+
+
+def emitter_targets(scene: warpis.Scene, count: int, seed: int, mesh: int | None = None):
+    """The centre of each emitter mesh (mean of its distinct vertices: a quad's centre,
+    a sphere's centre), then ``count`` fixed uniformly random points on the emitter
+    triangles (of mesh ``mesh`` only, if given).  Returns (centres, points, mesh of each centre)."""
+    owner = scene.triangle_mesh[scene.emitters]
+    meshes = np.unique(owner) if mesh is None else np.array([mesh])
+    centres = np.array([scene.vertices[np.unique(scene.triangles[scene.emitters[owner == m]])].mean(axis=0)
+                        for m in meshes])
+    pick = np.isin(owner, meshes)
+    tris = scene.triangle_vertices(scene.emitters[pick])
+    areas = scene.emitter_areas[pick]
+    rng = np.random.default_rng(seed)
+    which = rng.choice(len(tris), size=count, p=areas / areas.sum())
+    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
+    t = tris[which]
+    points = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
+    return centres, points, meshes
+
+
+def shading_rays(scene: warpis.Scene, receiver: int, targets: np.ndarray):
+    """Rays from receiver's shading point x + ε n (ε = scene.data.ray_eps) to ``targets``,
+    rounded to float32 as the kernel sees them, so both casts get the same rays."""
+    x, n = scene.receivers.positions[receiver], scene.receivers.normals[receiver]
+    origin = (x + float(scene.data.ray_eps) * n).astype(np.float32).astype(np.float64)
+    d = targets - origin
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32).astype(np.float64)
+    return origin, d
+
+
+def test_brute_force_cull_drops_no_hit(loaded_scenes):
+    """The bounding-sphere cull of the brute-force reference is conservative: with and
+    without it, the same rays give the same first hits, distances, facings and
+    ambiguity flags (all rays of occluded-quad and veach-plates' first plate, 16 rays
+    from an umbra and a penumbra receiver of heavy-occluder)."""
+    for name, receivers, count in (("occluded-quad", range(8), RANDOM_TARGETS),
+                                   ("veach-plates", range(4), 60), ("heavy-occluder", (3, 4), 16)):
+        s = loaded_scenes[name]
+        centres, points, _ = emitter_targets(s, count, seed=99)
+        tris = s.triangle_vertices()
+        for r in receivers:
+            origin, d = shading_rays(s, r, np.vstack([centres, points]))
+            culled, full = brute_first_hit(tris, origin, d), brute_first_hit(tris, origin, d, cull=False)
+            for a, b in zip(culled, full):
+                np.testing.assert_array_equal(a, b, err_msg=f"{name} receiver {r}")
+
+
+def test_warp_ray_cast_matches_brute_force(bundled_scene):
+    """From every receiver's shading point, rays to each emitter's centre and to 200
+    fixed random points on the emitters find the same first hit through the Warp mesh
+    as a float64 brute-force Möller–Trumbore over all triangles: same face (or both
+    miss), distance within 1e-4 relative, same facing (Warp's sign > 0 ⇔ front face),
+    and incident_radiance = the emission of a front-face hit, else 0.
+
+    Rule for ties: a ray is left out of the comparison when its brute-force first hit
+    changes between shrinking and enlarging every triangle by 1e-5 in barycentric
+    coordinates (relative to the triangle's size), i.e. when it passes within 1e-5 of a
+    triangle edge, such as a quad light's diagonal through its centre; such rays may
+    legitimately hit either neighbour.  At most 5% of the rays may be left out."""
+    s = bundled_scene
+    centres, points, _ = emitter_targets(s, RANDOM_TARGETS, seed=12345)
+    targets = np.vstack([centres, points])
+    tris = s.triangle_vertices()
+    origins, dirs, expected = [], [], []
+    for r in range(len(s.receivers)):
+        origin, d = shading_rays(s, r, targets)
+        origins.append(np.tile(origin, (len(d), 1)))
+        dirs.append(d)
+        expected.append(brute_first_hit(tris, origin, d))
+    face, dist, sign, radiance = warp_cast(s, np.vstack(origins), np.vstack(dirs))
+    b_face, b_dist, b_front, ambiguous = (np.concatenate(x) for x in zip(*expected))
+
+    keep = ~ambiguous
+    assert keep.mean() >= 0.95, f"{(~keep).sum()} of {len(keep)} rays are within {EDGE_TOLERANCE} of an edge"
+    mismatch = np.flatnonzero(keep & (face != b_face))
+    assert len(mismatch) == 0, f"{s.name}: rays {mismatch[:10]}: warp {face[mismatch[:10]]}, " \
+                               f"brute force {b_face[mismatch[:10]]}"
+    hit = keep & (b_face >= 0)
+    assert hit.mean() > 0.5
+    np.testing.assert_allclose(dist[hit], b_dist[hit], rtol=DISTANCE_RTOL)
+    np.testing.assert_array_equal(sign[hit] > 0, b_front[hit])
+    expected_le = np.where(b_front & (b_face >= 0), s.emission[np.maximum(b_face, 0)], 0.0).astype(np.float32)
+    np.testing.assert_array_equal(radiance[keep], expected_le[keep])
+
+
+# Receiver labels w.r.t. the brightest emitter mesh (its [[mesh]] index), from the
+# visibility table of scripts/make_scenes.py: fully lit, or in the umbra of the occluder.
+SHADOWS = {
+    "occluded-quad": {"light": 1, "occluder": 2, "lit": [0, 7], "umbra": [3, 4]},
+    "two-lights": {"light": 1, "occluder": 3, "lit": [0, 1, 2, 7], "umbra": [4, 5]},
+    "heavy-occluder": {"light": 1, "occluder": 2, "lit": [0, 1, 7], "umbra": [4, 5]},
+}
+
+
+@pytest.mark.parametrize("name", list(SHADOWS))
+def test_shadow_rays_hit_what_the_scene_says(name, loaded_scenes):
+    """Through the Warp mesh, from a lit receiver the ray to the light's centre hits the
+    light's front face and so do the rays to 200 random points on it; from an umbra
+    receiver the ray to the centre hits the occluder and no ray reaches the light."""
+    s = loaded_scenes[name]
+    spec = SHADOWS[name]
+    centres, points, _ = emitter_targets(s, RANDOM_TARGETS, seed=777, mesh=spec["light"])
+    targets = np.vstack([centres, points])
+    for r in spec["lit"] + spec["umbra"]:
+        origin, d = shading_rays(s, r, targets)
+        face, _, sign, radiance = warp_cast(s, np.tile(origin, (len(d), 1)), d)
+        assert np.all(face >= 0)
+        hit_mesh = s.triangle_mesh[face]
+        if r in spec["lit"]:
+            assert np.all(hit_mesh == spec["light"]) and np.all(sign > 0), f"{name}: receiver {r} should be lit"
+            assert np.all(radiance == s.emission[face])
+        else:
+            assert hit_mesh[0] == spec["occluder"], f"{name}: receiver {r}'s centre ray should hit the occluder"
+            assert not np.any(hit_mesh == spec["light"]) and np.all(radiance == 0.0)
+
+
+def test_veach_plates_see_every_light(loaded_scenes):
+    """In veach-plates every plate receiver's ray to each light sphere's centre hits the
+    front of that sphere (nothing in between), at the distance to the sphere's surface."""
+    s = loaded_scenes["veach-plates"]
+    centres, _, meshes = emitter_targets(s, 0, seed=0)
+    doc = _toml(s)
+    radii = np.array([doc["mesh"][m]["transform"]["scale"] for m in meshes])
+    for r in range(len(s.receivers)):
+        origin, d = shading_rays(s, r, centres)
+        face, dist, sign, radiance = warp_cast(s, np.tile(origin, (len(d), 1)), d)
+        np.testing.assert_array_equal(s.triangle_mesh[face], meshes)
+        assert np.all(sign > 0) and np.all(radiance > 0)
+        to_centre = np.linalg.norm(centres - origin, axis=1)
+        # a tessellated unit sphere lies between its inscribed and circumscribed radii
+        assert np.all(dist <= to_centre - 0.9 * radii) and np.all(dist >= to_centre - radii * 1.0001)

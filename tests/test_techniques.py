@@ -1,0 +1,681 @@
+"""Sampling techniques: each draws directions with exactly the density its pdf claims.
+
+Chi-square tests (``warpis.testing.ChiSquareTest``): 10⁶ primary samples u from numpy's
+``Generator(seed)`` go through ``sample_directions``; the histogram of the directions is
+held against the expected counts from ``direction_pdf``, for every technique (uniform,
+cosine, phong, light-area, light-power, light-solid-angle) at two receivers of every
+bundled scene (phong on veach-plates, the only scene with phong receivers), and the
+light techniques at two receivers of a scene written here whose tilted quad light
+crosses the receivers' tangent planes.
+
+*Windows.*  The test bins the whole sphere on a 40 × 80 grid (uniform in cos θ and φ).
+Lights of 10⁻⁴–10⁻¹ sr then fall into a few cells, whose expected counts (tens of
+thousands) the test's jittered quadrature of the pdf cannot match to the 0.5 % that
+10⁶ samples resolve.  Light techniques and narrow Phong lobes are therefore tested
+through a *window*: a spherical cap around one light (or lobe), stretched onto the whole
+sphere by a map that scales 1 − cos θ about the cap's axis by a constant (so the
+solid-angle density is divided by that constant and the grid resolves the light), minus
+the caps of other windows.  Samples outside the window, and samples that their
+technique could not produce (pdf 0), are *invalid*: the test counts them in one more
+bin, whose expected count is 10⁶ × (1 − the pdf's mass in the window).  The windows of
+one technique at one receiver partition the directions of all emitters (one cap per
+light; on two-lights the large light's cap without the small light's), so each pdf is
+tested everywhere it is positive, its mass per window included.  Uniform and cosine, and
+the widest Phong lobe, are tested on the plain sphere about the receiver normal (the
+lobe axis for Phong); windows are tested about their own axis.
+
+*Significance.*  All chi-square runs of this module that are expected to pass form one
+family of ``CHI2_RUNS`` tests at family-wise level ``FAMILY_ALPHA`` = 1e-3: each run
+passes when its p-value is at least ``sidak_threshold(1e-3, CHI2_RUNS)``, so the
+probability that a correct implementation fails this module by chance is at most 1e-3
+(Šidák; the seeds are fixed, so every run draws the same numbers).  The two runs that
+must fail (the chi-square bites: cosine samples against the uniform pdf, light-area
+samples against the light-power pdf) are required to reach p < 1e-30.  The kernel-level
+checks are deterministic.
+
+Kernel-level checks: the pdf each sample reports equals ``direction_pdf`` at its
+direction; light pdfs sum over every emitter crossing (both sides of a sphere light,
+two lights on one ray) and count a shared edge once; the four quadrants of u map under
+light-area to four disjoint halves of the two triangles of a quad light, which they
+cover uniformly (the u.x rescaling keeps strata); ``square_to_spherical_triangle``
+stays inside its spherical triangle, uniformly, down to 10⁻⁸ sr; light-solid-angle at a
+receiver that no emitter faces produces only invalid samples and estimates 0.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zlib
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warpis.engine import run_trials
+from warpis.integrand import evaluate_integrand
+from warpis.scene import load_scene
+from warpis.stats import sidak_threshold
+from warpis.techniques import direction_pdf, light_table, sample_directions
+from warpis.testing import ChiSquareTest, orthonormal_frame
+from warpis.warps import square_to_spherical_triangle
+
+FAMILY_ALPHA = 1e-3
+SAMPLES = 1_000_000
+BITE_P = 1e-30
+
+# --------------------------------------------------------------------------- scene files
+
+
+def _toml(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (float, np.floating)):
+        return repr(float(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_toml(v) for v in np.asarray(value, dtype=object).tolist()) + "]"
+    raise TypeError(value)
+
+
+def _write_scene(directory: Path, meshes: list[tuple], points, normals) -> Path:
+    """OBJ files and a scene TOML (irradiance receivers); returns the TOML's path.
+
+    ``meshes``: (vertices (V, 3), faces (F, 3), emission) per mesh.
+    """
+    directory.mkdir(parents=True, exist_ok=True)
+    lines = [f'name = "{directory.name}"', ""]
+    for i, (v, f, emission) in enumerate(meshes):
+        obj = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(v, float).tolist()]
+        obj += ["f " + " ".join(str(j + 1) for j in face) for face in np.asarray(f, int).tolist()]
+        (directory / f"mesh{i}.obj").write_text("\n".join(obj) + "\n")
+        lines += ["[[mesh]]", f'path = "mesh{i}.obj"'] + ([f"emission = {float(emission)!r}"] if emission else []) + [""]
+    lines += ["[receivers]", f"points = {_toml(points)}", f"normals = {_toml(normals)}", "",
+              "[material]", 'type = "irradiance"', ""]
+    path = directory / "scene.toml"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _horizon_scene(directory: Path) -> Path:
+    """A 1.2 × 1 quad light, tilted 20° from vertical, facing two receivers whose
+    tangent planes cut it: part of it lies below their horizon."""
+    centre = np.array([1.2, 0.0, 0.1])
+    e1 = np.array([0.0, 0.5, 0.0])
+    e2 = 0.6 * _unit([math.sin(math.radians(20.0)), 0.0, math.cos(math.radians(20.0))])
+    corners = np.array([centre - e1 - e2, centre + e1 - e2, centre + e1 + e2, centre - e1 + e2])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    if np.dot(np.cross(corners[1] - corners[0], corners[2] - corners[0]), -centre) < 0.0:
+        faces = faces[:, ::-1]  # front face towards the receivers
+    return _write_scene(directory, [(corners, faces, 7.0)], [[0.0, 0.0, 0.0], [0.1, 0.3, 0.2]],
+                        [[0.0, 0.0, 1.0], _unit([0.3, 0.1, 1.0]).tolist()])
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """Scenes by name, loaded on first use: the bundled ones and "horizon-quad"."""
+
+    class Scenes(dict):
+        def __missing__(self, name):
+            if name == "horizon-quad":
+                scene = load_scene(_horizon_scene(tmp_path_factory.mktemp("horizon-quad")))
+            else:
+                scene = load_scene(name)
+            self[name] = scene
+            return scene
+
+    return Scenes()
+
+
+def _shading_point(scene, r: int) -> np.ndarray:
+    rx = scene.receivers
+    return rx.positions[r] + float(scene.data.ray_eps) * rx.normals[r]
+
+
+def _lobe_axis(scene, r: int) -> np.ndarray:
+    n, v = scene.receivers.normals[r], scene.receivers.view[r]
+    return _unit(2.0 * np.dot(n, v) * n - v)
+
+
+# --------------------------------------------------------------------------- windows
+
+
+@dataclass
+class Window:
+    """The cap {ω : 1 − ω·axis < h_max} minus excluded caps, stretched onto the sphere.
+
+    The map scales h = 1 − cos θ about ``axis`` by k = 2/h_max and keeps φ, so it maps
+    the cap onto the whole sphere with the constant Jacobian k in (cos θ, φ): a density p
+    on the cap becomes p/k.  ``h_max = 2`` is the plain sphere (k = 1).
+    """
+
+    axis: np.ndarray
+    h_max: float = 2.0
+    exclude: list[tuple[np.ndarray, float]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.frame = np.stack(orthonormal_frame(self.axis))  # rows: b1, b2, axis
+        self.axis = self.frame[2]
+        self.k = 2.0 / self.h_max
+
+    @staticmethod
+    def _h(local: np.ndarray) -> np.ndarray:
+        """1 − cos θ of unit local directions, without cancellation near the pole."""
+        rho2 = local[:, 0] ** 2 + local[:, 1] ** 2
+        z = local[:, 2]
+        return np.where(z > 0.0, rho2 / (1.0 + np.abs(z)), 1.0 - z)
+
+    def _stretch(self, local: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """World directions with the φ of ``local`` and 1 − cos θ = ``h``."""
+        h = np.clip(h, 0.0, 2.0)
+        rho = np.sqrt(local[:, 0] ** 2 + local[:, 1] ** 2)
+        f = np.sqrt(h * (2.0 - h)) / np.maximum(rho, 1e-300)
+        out = np.empty_like(local)
+        out[:, 0] = local[:, 0] * f
+        out[:, 1] = local[:, 1] * f
+        out[:, 2] = 1.0 - h
+        return np.dot(out, self.frame)
+
+    def _excluded(self, d: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(d), dtype=bool)
+        for axis, h_max in self.exclude:
+            out |= 0.5 * np.sum((d - axis) ** 2, axis=1) < h_max
+        return out
+
+    def wrap(self, sample, pdf):
+        """(sample_func, pdf_func) of the stretched window for ChiSquareTest."""
+
+        def sample_func(count: int, seed: int):
+            d, p = sample(count, seed)
+            d = np.asarray(d, dtype=np.float64)
+            norm = np.linalg.norm(d, axis=1)
+            d = d / np.where(norm > 0.0, norm, 1.0)[:, None]
+            local = np.dot(d, self.frame.T)
+            h = self._h(local)
+            ok = (p > 0.0) & (h < self.h_max) & ~self._excluded(d)
+            out = np.zeros_like(d)
+            p_out = np.zeros_like(p)
+            out[ok] = d[ok] if self.k == 1.0 else self._stretch(local[ok], h[ok] * self.k)
+            p_out[ok] = p[ok] / self.k
+            return out, p_out
+
+        def pdf_func(dz: np.ndarray) -> np.ndarray:
+            if self.k == 1.0:
+                d = dz
+            else:
+                local = np.dot(dz, self.frame.T)
+                d = self._stretch(local, self._h(local) / self.k)
+            out = np.zeros(len(d))
+            ok = ~self._excluded(d)
+            out[ok] = pdf(d[ok]) / self.k
+            return out
+
+        return sample_func, pdf_func
+
+
+def _cap_of(directions: np.ndarray, margin: float = 1.2) -> tuple[np.ndarray, float]:
+    """(axis, h_max) of a cap about the mean of unit ``directions`` holding all of them
+    with ``margin`` × their largest angle from it."""
+    axis = _unit(directions.mean(axis=0))
+    angle = float(np.max(np.arccos(np.clip(directions @ axis, -1.0, 1.0))))
+    return axis, 1.0 - math.cos(min(math.pi, margin * angle))
+
+
+def _light_cap(scene, r: int, mesh: int) -> tuple[np.ndarray, float]:
+    """The cap of the directions from receiver r's shading point to emitter mesh ``mesh``."""
+    tris = scene.emitters[scene.triangle_mesh[scene.emitters] == mesh]
+    assert tris.size
+    d = scene.vertices[scene.triangles[tris]].reshape(-1, 3) - _shading_point(scene, r)
+    return _cap_of(_unit(d))
+
+
+def _window(scene, r: int, technique: str, spec) -> Window:
+    """``spec``: "sphere" (about the normal, or the lobe axis for phong), ("lobe", mass)
+    (the Phong cap outside which the lobe holds ``mass``) or ("light", mesh, (excluded
+    meshes...))."""
+    if spec == "sphere":
+        return Window(_lobe_axis(scene, r) if technique == "phong" else scene.receivers.normals[r])
+    if spec[0] == "lobe":
+        e = float(scene.receivers.exponent[r])
+        return Window(_lobe_axis(scene, r), 1.0 - spec[1] ** (1.0 / (e + 1.0)))
+    axis, h_max = _light_cap(scene, r, spec[1])
+    return Window(axis, h_max, [_light_cap(scene, r, m) for m in spec[2]])
+
+
+# --------------------------------------------------------------------------- the cases
+
+HEMISPHERE = ("uniform", "cosine")
+LIGHTS = ("light-area", "light-power", "light-solid-angle")
+# (scene, receivers, emitter meshes → windows).  Receivers: occluded-quad lit (0) and in
+# umbra (4); heavy-occluder lit (1) and shadowed (5); two-lights right under the
+# small light (1) and beside it (5); veach-plates plate-2 (5, e = 50) and plate-4 (14,
+# e = 2000) — each sees the four sphere lights (320 triangles each, crossed twice).
+SCENE_CASES = [
+    ("occluded-quad", (0, 4), [("light", 1, ())]),
+    ("heavy-occluder", (1, 5), [("light", 1, ())]),
+    ("two-lights", (1, 5), [("light", 1, ()), ("light", 2, (1,))]),
+    ("veach-plates", (5, 14), [("light", m, ()) for m in (4, 5, 6, 7)]),
+    ("horizon-quad", (0, 1), [("light", 0, ())]),
+]
+# Phong: plate-1 (e = 10) on the plain sphere, narrower lobes in a window outside which
+# they hold 1e-3 of their mass.
+PHONG_CASES = [(0, "sphere"), (0, ("lobe", 1e-3)), (5, ("lobe", 1e-3)), (9, ("lobe", 1e-3)), (14, ("lobe", 1e-3))]
+
+
+def _cases() -> list[tuple[str, int, str, object]]:
+    out = []
+    for name, receivers, windows in SCENE_CASES:
+        for r in receivers:
+            if name != "horizon-quad":
+                out += [(name, r, t, "sphere") for t in HEMISPHERE]
+            out += [(name, r, t, w) for t in LIGHTS for w in windows]
+    out += [("veach-plates", r, "phong", w) for r, w in PHONG_CASES]
+    return out
+
+
+def _case_id(case) -> str:
+    name, r, tech, spec = case
+    where = spec if isinstance(spec, str) else ("lobe" if spec[0] == "lobe" else
+                                                f"light{spec[1]}" + "".join(f"-not{m}" for m in spec[2]))
+    return f"{name}-r{r}-{tech}-{where}"
+
+
+CHI2_CASES = _cases()
+# The spherical-triangle uniformity checks below are chi-square tests too.
+SPHERICAL_TRIANGLES = {
+    "octant": ([0.0, 0.0, 0.0], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+    "large-obtuse": ([0.1, -0.2, 0.0], [[1.0, -1.0, 0.3], [-1.2, -0.8, 0.5], [0.1, 1.5, 0.4]]),
+    "sliver": ([0.0, 0.0, 0.0], [[2.0, -1.0, 1.0], [2.0, 1.0, 1.02], [2.0, 0.0, 1.05]]),
+    "small": ([0.0, 0.0, 0.0], [[0.0, 0.0, 3.0], [0.05, 0.0, 3.0], [0.0, 0.04, 3.01]]),
+    "tiny": ([0.0, 0.0, 0.0], [[10.0, 0.0, 0.0], [10.0, 1e-3, 0.0], [10.0, 0.0, 1e-3]]),
+    "tiny-oblique": ([0.3, -0.2, 0.1], [[3.0, 7.0, -5.0], [3.0007, 7.0002, -5.0004], [2.9996, 7.0008, -4.9999]]),
+}
+CHI2_RUNS = len(CHI2_CASES) + len(SPHERICAL_TRIANGLES)
+THRESHOLD = sidak_threshold(FAMILY_ALPHA, CHI2_RUNS)
+
+
+def _seed(text: str) -> int:
+    return zlib.crc32(text.encode())
+
+
+def _threaded(fn, *arrays):
+    """``fn`` over slices of ``arrays`` on two threads (Warp launches release the GIL);
+    the results do not depend on the split."""
+    n = len(arrays[0])
+    if n < 100_000:
+        return fn(*arrays)
+    half = n // 2
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        parts = list(pool.map(lambda sl: fn(*(a[sl] for a in arrays)), (slice(0, half), slice(half, n))))
+    if isinstance(parts[0], tuple):
+        return tuple(np.concatenate(x) for x in zip(*parts))
+    return np.concatenate(parts)
+
+
+def _sampler(scene, r: int, technique: str):
+    def sample(count: int, seed: int):
+        u = np.random.default_rng(seed).random((count, 2), dtype=np.float32)
+        return _threaded(lambda uu: sample_directions(scene, r, technique, uu), u)
+
+    return sample
+
+
+def _chi2(scene, r: int, technique: str, spec, seed: int) -> ChiSquareTest:
+    """The chi-square test of one case, its samples drawn.  The grid is 40 × 80 unless the
+    window holds few samples (a light that a technique rarely picks): then it is coarser,
+    ~50 samples per cell, so that the cells are not all pooled into one."""
+    light_table(scene)  # built once, before threads share it
+    direction_pdf(scene, r, technique, np.array([[0.0, 0.0, 1.0]]))  # kernels loaded before two threads launch them
+    window = _window(scene, r, technique, spec)
+    sample_func, pdf_func = window.wrap(_sampler(scene, r, technique),
+                                        lambda d: _threaded(lambda dd: direction_pdf(scene, r, technique, dd), d))
+    drawn = sample_func(SAMPLES, seed)
+    valid = int(np.count_nonzero(drawn[1] > 0.0))
+    rows = int(np.clip(math.sqrt(valid / 100.0), 4, 40))
+
+    def sample_once(count: int, s: int):
+        assert (count, s) == (SAMPLES, seed)
+        return drawn
+
+    # Light pdfs jump at the lights' edges and grow as 1/cos θ_y towards a silhouette:
+    # a finer quadrature keeps its error well below the statistic's spread.
+    return ChiSquareTest(sample_once, pdf_func, window.axis, sample_count=SAMPLES, res=(rows, 2 * rows), seed=seed,
+                         ires=24 if technique in LIGHTS else 16,
+                         allow_invalid=window.k != 1.0 or technique in LIGHTS,
+                         # The small sphere lights: a float32 ray that grazes a silhouette or
+                         # meets an edge may cross it or not when its direction moves by an
+                         # ulp (the window's map and back), also on valid samples.
+                         pdf_mismatch_fraction=max(1e-3, 5.0 / max(valid, 1)) if scene.name == "veach-plates" else 1e-4)
+
+
+@pytest.mark.parametrize("case", CHI2_CASES, ids=[_case_id(c) for c in CHI2_CASES])
+def test_chi2(scenes, case):
+    name, r, technique, spec = case
+    scene = scenes[name]
+    test = _chi2(scene, r, technique, spec, _seed(_case_id(case)))
+    passed = test.run(FAMILY_ALPHA, CHI2_RUNS)
+    assert passed, test.messages
+    assert test.p_value >= THRESHOLD
+    if spec == "sphere" and technique not in LIGHTS:
+        assert test.invalid_count == 0
+
+
+def test_horizon_quad_straddles_the_horizon(scenes):
+    """The horizon-quad receivers see their light partly above and partly below the
+    horizon, and the light techniques put samples on both sides."""
+    scene = scenes["horizon-quad"]
+    corners = scene.triangle_vertices(scene.emitters).reshape(-1, 3)
+    u = np.random.default_rng(1).random((100_000, 2), dtype=np.float32)
+    for r in range(2):
+        h = (corners - scene.receivers.positions[r]) @ scene.receivers.normals[r]
+        assert h.min() < 0.0 < h.max()
+        for tech in LIGHTS:
+            d, p = sample_directions(scene, r, tech, u)
+            assert np.all(p > 0.0)
+            c = d @ scene.receivers.normals[r]
+            assert 0.05 < np.mean(c < 0.0) < 0.95
+            f = evaluate_integrand(scene, r, d)
+            assert np.all(f[c <= 0.0] == 0.0) and np.all(f[c > 1e-4] > 0.0)
+
+
+# --------------------------------------------------------------------------- bites
+
+
+def test_chi2_bites_cosine_samples_against_uniform_pdf(scenes):
+    """Cosine-weighted samples declared uniform (and reporting the uniform pdf, so only
+    the histogram can tell) fail."""
+    scene, r = scenes["occluded-quad"], 0
+    sample = _sampler(scene, r, "cosine")
+
+    def sample_func(count, seed):
+        d, _ = sample(count, seed)
+        return d, direction_pdf(scene, r, "uniform", d)  # consistent, but the wrong density
+
+    test = ChiSquareTest(sample_func, lambda d: direction_pdf(scene, r, "uniform", d), scene.receivers.normals[r],
+                         sample_count=SAMPLES, seed=11)
+    assert not test.run(FAMILY_ALPHA, CHI2_RUNS)
+    assert test.p_value < BITE_P and "problem" not in test.messages, test.messages
+
+
+def test_chi2_bites_light_area_samples_against_light_power_pdf(scenes):
+    """On two-lights the small light has 2000× the radiance: light-power gives it half
+    the samples, light-area a thousandth.  Tested in its window."""
+    scene, r = scenes["two-lights"], 5
+    window = _window(scene, r, "light-area", ("light", 1, ()))
+    sample = _sampler(scene, r, "light-area")
+
+    def sample_consistent(count, seed):
+        d, _ = sample(count, seed)
+        return d, direction_pdf(scene, r, "light-power", d)
+
+    sample_func, pdf_func = window.wrap(sample_consistent, lambda d: direction_pdf(scene, r, "light-power", d))
+    test = ChiSquareTest(sample_func, pdf_func, window.axis, sample_count=SAMPLES, seed=12, allow_invalid=True)
+    assert not test.run(FAMILY_ALPHA, CHI2_RUNS)
+    assert test.p_value < BITE_P and "problem" not in test.messages, test.messages
+
+
+# --------------------------------------------------------------------------- kernel level
+
+PDF_CASES = [(name, r, tech) for name, receivers, _ in SCENE_CASES for r in receivers
+             for tech in ((HEMISPHERE if name != "horizon-quad" else ()) + LIGHTS
+                          + (("phong",) if name == "veach-plates" else ()))]
+
+
+@pytest.mark.parametrize(("name", "r", "technique"), PDF_CASES)
+def test_reported_pdf_is_direction_pdf(scenes, name, r, technique):
+    """The pdf a sample reports is ``direction_pdf`` at its direction: to float32
+    rounding, and exactly for light-solid-angle.  Light samples may come back invalid
+    (pdf 0) where the float32 ray towards the sampled point misses it: it slips between
+    two triangles (Möller–Trumbore is not watertight; ~1e-6 of the samples on a quad
+    light), or, on veach-plates's small sphere lights, where rounding the direction to
+    float32 moves the ray by 1e-4 of a triangle, leaves the silhouette.  There a ray
+    that grazes a silhouette or meets an edge can also gain or lose a crossing when the
+    direction moves by an ulp (``direction_pdf`` renormalises it).  Allowed: 1e-5 of
+    the samples (1e-4 on veach-plates) for each."""
+    scene = scenes[name]
+    u = np.random.default_rng(_seed(f"{name}{r}{technique}")).random((200_000, 2), dtype=np.float32)
+    d, p = sample_directions(scene, r, technique, u)
+    q = direction_pdf(scene, r, technique, d)
+    limit = 0 if technique not in LIGHTS else (20 if name == "veach-plates" else 2)
+    invalid = p == 0.0
+    assert np.count_nonzero(invalid) <= limit
+    # float32: cos^e α with e up to 2000; r²/|cos θ_y| at grazing θ_y.
+    rtol = 1e-3 if technique == "phong" else 1e-4
+    bad = np.abs(p - q) > rtol * np.maximum(p, q)
+    assert np.count_nonzero(bad[~invalid]) <= limit
+    if technique == "light-solid-angle":
+        assert np.array_equal(p[~invalid & ~bad], q[~invalid & ~bad])
+    assert np.allclose(np.linalg.norm(d[~invalid], axis=1), 1.0, atol=1e-6)
+
+
+def _crossings(p: np.ndarray, w: np.ndarray, tris: np.ndarray):
+    """Möller–Trumbore in float64: (t, |cos|, front) of every crossing of the ray (p, w)."""
+    e1 = tris[:, 1] - tris[:, 0]
+    e2 = tris[:, 2] - tris[:, 0]
+    pv = np.cross(w, e2)
+    det = np.einsum("ij,ij->i", e1, pv)
+    ok = np.abs(det) > 1e-300
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tv = p - tris[:, 0]
+    a = np.einsum("ij,ij->i", tv, pv) * inv
+    qv = np.cross(tv, e1)
+    b = (qv @ w) * inv
+    t = np.einsum("ij,ij->i", e2, qv) * inv
+    hit = ok & (a >= 0.0) & (b >= 0.0) & (a + b <= 1.0) & (t > 0.0)
+    nrm = np.cross(e1, e2)
+    cos = np.abs(nrm[hit] @ w) / np.linalg.norm(nrm[hit], axis=1)
+    front = (nrm[hit] @ w) < 0.0
+    return t[hit], cos, front, np.flatnonzero(hit)
+
+
+def _expected_light_pdfs(scene, r: int, w: np.ndarray) -> dict[str, float]:
+    """Light pdfs at direction w summed over every crossing, in float64 numpy."""
+    p = _shading_point(scene, r)
+    tris = scene.triangle_vertices(scene.emitters)
+    t, cos, front, k = _crossings(p, w, tris)
+    radiance = scene.emitter_radiance[k]
+    table = light_table(scene)
+    total = float(table.total.numpy()[r])
+    return {
+        "light-area": float(np.sum(t * t / cos) / scene.total_emitter_area),
+        "light-power": float(np.sum(radiance * t * t / cos) / scene.total_power),
+        "light-solid-angle": float(np.sum(radiance[front]) / total) if total > 0 else 0.0,
+        "crossings": len(t),
+    }
+
+
+def test_light_pdfs_sum_over_sphere_crossings(scenes):
+    """Through a sphere light a ray crosses it twice: light-area and light-power carry
+    the sum of both r²/(A|cos θ_y|) terms, light-solid-angle (front faces only) one."""
+    scene = scenes["veach-plates"]
+    rng = np.random.default_rng(2)
+    for r in (5, 14):
+        p = _shading_point(scene, r)
+        for mesh in (4, 5, 6, 7):
+            tris = scene.emitters[scene.triangle_mesh[scene.emitters] == mesh]
+            centre = scene.vertices[scene.triangles[tris]].reshape(-1, 3).mean(axis=0)
+            radius = np.linalg.norm(scene.vertices[scene.triangles[tris]].reshape(-1, 3) - centre, axis=1).max()
+            for _ in range(5):
+                target = centre + 0.6 * radius * _unit(rng.normal(size=3))
+                w = _unit(target - p).astype(np.float32).astype(np.float64)
+                w = _unit(w)
+                exp = _expected_light_pdfs(scene, r, w)
+                assert exp["crossings"] == 2
+                for tech in LIGHTS:
+                    got = direction_pdf(scene, r, tech, w[None])[0]
+                    assert got == pytest.approx(exp[tech], rel=2e-4), (r, mesh, tech)
+
+
+def test_light_pdfs_sum_over_two_lights_on_one_ray(scenes):
+    """Nearly straight up from two-lights receiver 1 a ray crosses the small light, then the
+    large one: light-area and light-power add both terms (with their radiances for
+    light-power); light-solid-angle adds both front faces."""
+    scene, r = scenes["two-lights"], 1
+    for w in ([0.003, 0.001, 1.0], [0.01, -0.02, 1.0], [-0.015, 0.01, 1.0]):
+        w = _unit(np.asarray(w, np.float32).astype(np.float64))
+        exp = _expected_light_pdfs(scene, r, w)
+        assert exp["crossings"] == 2
+        for tech in LIGHTS:
+            assert direction_pdf(scene, r, tech, w[None])[0] == pytest.approx(exp[tech], rel=2e-4), tech
+
+
+def test_light_pdf_counts_shared_edge_once(scenes):
+    """A ray through the diagonal shared by the two triangles of occluded-quad's light
+    carries one r²/(A cos θ_y), not two."""
+    scene = scenes["occluded-quad"]
+    tris = scene.triangle_vertices(scene.emitters)
+    shared = [v for v in tris[0] if any(np.allclose(v, x) for x in tris[1])]
+    assert len(shared) == 2
+    for r in (0, 3, 6):
+        p = _shading_point(scene, r)
+        for s in np.linspace(0.05, 0.95, 7):
+            y = (1.0 - s) * shared[0] + s * shared[1]
+            w = _unit(y - p)
+            dist = float(np.linalg.norm(y - p))
+            cos_y = abs(w[2])  # the light is horizontal
+            for tech in ("light-area", "light-power"):
+                got = direction_pdf(scene, r, tech, w[None])[0]
+                assert got == pytest.approx(dist * dist / (cos_y * scene.total_emitter_area), rel=1e-4)
+
+
+def test_light_area_quadrants_map_to_disjoint_halves(scenes):
+    """Under light-area on a two-triangle light of equal halves (area CDF 0, ½, 1), the
+    quadrant (i, j) of u maps onto half j of triangle i: u.x < ½ picks triangle 0 and is
+    rescaled to a full [0, 1), and u.y < ½ gives the half next to the triangle's second
+    corner.  The four images are disjoint, and together they cover the light uniformly."""
+    scene, r = scenes["occluded-quad"], 0
+    assert np.allclose(scene.data.area_cdf.numpy(), [0.0, 0.5, 1.0])
+    tris = scene.triangle_vertices(scene.emitters)
+    m = 200
+    g = (np.arange(m) + 0.5) / m
+    gx, gy = np.meshgrid(g, g, indexing="ij")
+    p = _shading_point(scene, r)
+    height = tris[0, 0, 2]
+    assert np.allclose(tris[..., 2], height)
+    pts, quadrant = [], []
+    for qi in range(2):
+        for qj in range(2):
+            u = np.stack([(qi + gx.ravel()) / 2.0, (qj + gy.ravel()) / 2.0], axis=1)
+            d, _ = sample_directions(scene, r, "light-area", u)
+            d = d.astype(np.float64)
+            pts.append(p + ((height - p[2]) / d[:, 2])[:, None] * d)
+            quadrant.append(np.full(len(u), 2 * qi + qj))
+    pts = np.concatenate(pts)
+    quadrant = np.concatenate(quadrant)
+    # Barycentrics (of corners a, b, c) in each triangle.
+    region = np.full(len(pts), -1)
+    for k in range(2):
+        a, b, c = tris[k]
+        m2 = np.array([b - a, c - a])[:, :2].T
+        st = np.linalg.solve(m2, (pts[:, :2] - a[:2]).T).T
+        wb, wc = st[:, 0], st[:, 1]
+        inside = (wb >= -1e-6) & (wc >= -1e-6) & (wb + wc <= 1.0 + 1e-6)
+        region[inside] = 2 * k + (wc > wb)[inside]
+    assert np.array_equal(region, quadrant)
+    # Uniform over the light: an 8 × 4 grid over its rectangle holds 1/32 of the points each.
+    lo, hi = tris.reshape(-1, 3).min(axis=0), tris.reshape(-1, 3).max(axis=0)
+    ix = np.clip(((pts[:, 0] - lo[0]) / (hi[0] - lo[0]) * 8).astype(int), 0, 7)
+    iy = np.clip(((pts[:, 1] - lo[1]) / (hi[1] - lo[1]) * 4).astype(int), 0, 3)
+    frac = np.bincount(ix * 4 + iy, minlength=32) / len(pts)
+    assert np.max(np.abs(frac - 1.0 / 32.0)) < 1e-3
+
+
+@wp.kernel
+def _spherical_triangle_kernel(u: wp.array(dtype=wp.vec2), p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d,
+                               out: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    out[i] = square_to_spherical_triangle(u[i], p, a, b, c)
+
+
+def _solid_angle(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
+    """Solid angle of the spherical triangle of unit vectors a, b, c (Van Oosterom–Strackee)."""
+    num = abs(np.dot(a, np.cross(b, c)))
+    den = 1.0 + np.dot(a, b) + np.dot(b, c) + np.dot(c, a)
+    return 2.0 * math.atan2(num, den)
+
+
+def _inside_margin(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Signed angular distance of unit x to the nearest side of the spherical triangle
+    abc (positive inside)."""
+    s = np.sign(np.dot(a, np.cross(b, c)))
+    out = np.full(len(x), np.inf)
+    for p, q in ((a, b), (b, c), (c, a)):
+        n = np.cross(p, q)
+        out = np.minimum(out, s * (x @ (n / np.linalg.norm(n))))
+    return out
+
+
+@pytest.mark.parametrize("name", list(SPHERICAL_TRIANGLES))
+def test_spherical_triangle_samples_inside_and_uniform(name):
+    """Arvo's map keeps every sample inside its spherical triangle for the octant down
+    to a 1e-3 triangle at distance 10 (5e-9 sr), u at the corners of the square
+    included: to 1e-6 of the triangle's size, i.e. 1e-10 rad for the tiny ones (the
+    formula's float64 cancellations leave ~1e-8 of the size; the float32 direction a
+    technique returns is rounded by 6e-8 rad anyway).  And the samples are uniform: the
+    four midpoint sub-triangles get their share of the solid angle (chi-square)."""
+    p, verts = SPHERICAL_TRIANGLES[name]
+    p = np.asarray(p, float)
+    verts = np.asarray(verts, float)
+    a, b, c = _unit(verts - p)
+    omega = _solid_angle(a, b, c)
+    size = max(np.linalg.norm(a - b), np.linalg.norm(b - c), np.linalg.norm(c - a))
+    edge = np.float32(0.99999994)
+    rng = np.random.default_rng(_seed(name))
+    u = np.vstack([rng.random((SAMPLES, 2), dtype=np.float32),
+                   np.array([[0, 0], [0, edge], [edge, 0], [edge, edge], [0.5, 0], [0, 0.5]], np.float32)])
+    out = wp.zeros(len(u), dtype=wp.vec3d, device="cpu")
+    wp.launch(_spherical_triangle_kernel, dim=len(u), device="cpu",
+              inputs=[wp.array(u, dtype=wp.vec2, device="cpu"), wp.vec3d(*p), wp.vec3d(*verts[0]),
+                      wp.vec3d(*verts[1]), wp.vec3d(*verts[2]), out])
+    x = out.numpy()
+    assert np.all(np.isfinite(x))
+    assert np.allclose(np.linalg.norm(x, axis=1), 1.0, atol=1e-12)
+    margin = _inside_margin(x, a, b, c)
+    assert margin.min() >= -1e-6 * size, f"{name}: a sample lies {-margin.min() / size:.3g} triangle sizes outside"
+    # Uniformity: the corner sub-triangles and the middle one.
+    mab, mbc, mca = _unit(a + b), _unit(b + c), _unit(c + a)
+    subs = [(a, mab, mca), (mab, b, mbc), (mca, mbc, c), (mab, mbc, mca)]
+    x = x[:SAMPLES]
+    label = np.full(len(x), 3)
+    for i, (s0, s1, s2) in enumerate(subs[:3]):
+        label[_inside_margin(x, s0, s1, s2) > 0.0] = i
+    observed = np.bincount(label, minlength=4).astype(float)
+    expected = SAMPLES * np.array([_solid_angle(*s) for s in subs]) / omega
+    assert expected.sum() == pytest.approx(SAMPLES, rel=1e-6)
+    stat = float(np.sum((observed - expected) ** 2 / expected))
+    from warpis.stats import chi2_sf
+
+    p_value = float(chi2_sf(stat, 3))
+    assert p_value >= THRESHOLD, f"{name}: observed {observed}, expected {expected.round(1)}, p = {p_value:.3g}"
+
+
+def test_light_solid_angle_without_facing_emitter(tmp_path):
+    """A receiver above a ceiling light sees only its back: light-solid-angle has no
+    triangle to sample, every sample is invalid (zero direction, pdf 0) and the estimate
+    is exactly 0; light-area still samples the light (whose back emits nothing)."""
+    light = np.array([[-0.5, -0.5, 1.0], [-0.5, 0.5, 1.0], [0.5, 0.5, 1.0], [0.5, -0.5, 1.0]])
+    scene = load_scene(_write_scene(tmp_path, [(light, np.array([[0, 1, 2], [0, 2, 3]]), 5.0)],
+                                    [[0.0, 0.0, 2.0], [0.3, 0.0, 1.5], [0.0, 0.0, 0.0]],
+                                    [[0.0, 0.0, -1.0], _unit([0.5, 0.0, -1.0]).tolist(), [0.0, 0.0, 1.0]]))
+    assert np.allclose(light_table(scene).total.numpy()[:2], 0.0)
+    u = np.random.default_rng(4).random((100_000, 2), dtype=np.float32)
+    for r in (0, 1):
+        d, p = sample_directions(scene, r, "light-solid-angle", u)
+        assert np.all(p == 0.0) and np.all(d == 0.0)
+        assert np.all(direction_pdf(scene, r, "light-solid-angle", _unit(np.random.default_rng(r).normal(size=(1000, 3)))) == 0.0)
+        d, p = sample_directions(scene, r, "light-area", u)
+        assert np.all(p > 0.0)
+    est = run_trials(scene, "independent:single:light-solid-angle", 64, 256, seed=5)
+    assert np.all(est[:2] == 0.0) and np.all(est[2] > 0.0)
+    assert np.all(run_trials(scene, "independent:single:light-area", 64, 64, seed=6)[:2] == 0.0)
