@@ -25,9 +25,12 @@ Peak memory is measured in a fresh child process per (scene, estimator, side) th
 the scene, warms up and makes one measurement: its peak resident set size (VmHWM, which
 is ``ru_maxrss`` of the child's own address space; Linux's ``getrusage`` would also carry
 the parent's peak into the child) for the whole process (Python, Warp, trimesh, the
-scene and the run), and for the baseline also the
-tracemalloc peak of the run itself (numpy's allocations; Warp's native allocations are
-invisible to tracemalloc, so warpis gets no such figure).  ``--no-memory`` skips it.
+scene and the run), and for the baseline also the tracemalloc peak of the run itself
+(numpy's allocations; Warp's native allocations are invisible to tracemalloc, so warpis
+gets no such figure).  ``--no-memory`` skips it.
+
+The machine's other load skews the rates: the header and footer print the 1-minute load
+average, and the JSON keeps every run's rate besides the medians.
 """
 
 from __future__ import annotations

@@ -58,7 +58,7 @@ import warp as wp
 from warpis.engine import run_trials
 from warpis.integrand import evaluate_integrand
 from warpis.scene import load_scene
-from warpis.stats import sidak_threshold
+from warpis.stats import chi2_sf, sidak_threshold
 from warpis.techniques import direction_pdf, light_table, sample_directions
 from warpis.testing import ChiSquareTest, orthonormal_frame
 from warpis.warps import square_to_spherical_triangle
@@ -95,7 +95,8 @@ def _write_scene(directory: Path, meshes: list[tuple], points, normals) -> Path:
         obj = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(v, float).tolist()]
         obj += ["f " + " ".join(str(j + 1) for j in face) for face in np.asarray(f, int).tolist()]
         (directory / f"mesh{i}.obj").write_text("\n".join(obj) + "\n")
-        lines += ["[[mesh]]", f'path = "mesh{i}.obj"'] + ([f"emission = {float(emission)!r}"] if emission else []) + [""]
+        lines += ["[[mesh]]", f'path = "mesh{i}.obj"']
+        lines += ([f"emission = {float(emission)!r}"] if emission else []) + [""]
     lines += ["[receivers]", f"points = {_toml(points)}", f"normals = {_toml(normals)}", "",
               "[material]", 'type = "irradiance"', ""]
     path = directory / "scene.toml"
@@ -460,7 +461,8 @@ def test_reported_pdf_is_direction_pdf(scenes, name, r, technique):
 
 
 def _crossings(p: np.ndarray, w: np.ndarray, tris: np.ndarray):
-    """Möller–Trumbore in float64: (t, |cos|, front) of every crossing of the ray (p, w)."""
+    """Möller–Trumbore in float64: distance t, |cos θ_y|, whether the front face is hit,
+    and the emitter index, of every crossing of the ray (p, w) with ``tris``."""
     e1 = tris[:, 1] - tris[:, 0]
     e2 = tris[:, 2] - tris[:, 0]
     pv = np.cross(w, e2)
@@ -654,8 +656,6 @@ def test_spherical_triangle_samples_inside_and_uniform(name):
     expected = SAMPLES * np.array([_solid_angle(*s) for s in subs]) / omega
     assert expected.sum() == pytest.approx(SAMPLES, rel=1e-6)
     stat = float(np.sum((observed - expected) ** 2 / expected))
-    from warpis.stats import chi2_sf
-
     p_value = float(chi2_sf(stat, 3))
     assert p_value >= THRESHOLD, f"{name}: observed {observed}, expected {expected.round(1)}, p = {p_value:.3g}"
 
@@ -673,7 +673,8 @@ def test_light_solid_angle_without_facing_emitter(tmp_path):
     for r in (0, 1):
         d, p = sample_directions(scene, r, "light-solid-angle", u)
         assert np.all(p == 0.0) and np.all(d == 0.0)
-        assert np.all(direction_pdf(scene, r, "light-solid-angle", _unit(np.random.default_rng(r).normal(size=(1000, 3)))) == 0.0)
+        anywhere = _unit(np.random.default_rng(r).normal(size=(1000, 3)))
+        assert np.all(direction_pdf(scene, r, "light-solid-angle", anywhere) == 0.0)
         d, p = sample_directions(scene, r, "light-area", u)
         assert np.all(p > 0.0)
     est = run_trials(scene, "independent:single:light-solid-angle", 64, 256, seed=5)

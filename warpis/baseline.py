@@ -45,8 +45,8 @@ __all__ = ["BASELINE_ESTIMATORS", "BaselineScene", "baseline_scene", "baseline_t
 BASELINE_ESTIMATORS = ("independent:single:light-area", "jittered:balance:light-area+cosine")
 
 # Target number of samples (shadow rays) of one task: large enough that numpy's and
-# Embree's per-call costs vanish, small enough that the temporaries stay in cache-sized
-# tens of MB and that the thread pool has tasks to balance.
+# Embree's per-call costs vanish, small enough that the temporaries stay at a few tens
+# of MB and that the thread pool has tasks to balance.
 CHUNK_SAMPLES = 1 << 16
 
 _BELOW_ONE = float(np.nextafter(1.0, 0.0))

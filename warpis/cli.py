@@ -157,6 +157,56 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_verify(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from . import plots
+    from .estimators import parse_estimator
+    from .verify import DEFAULT_N, markdown, summary_lines, verify
+
+    techniques = tuple(args.techniques.split("+")) if args.techniques else None
+    estimators = [parse_estimator(e) for e in args.estimators.split(",")] if args.estimators else None
+    n_values = _int_list(args.n, "--n") if args.n else DEFAULT_N
+    out = Path(args.out) if args.out else None
+    if out is not None and out.exists() and not out.is_dir():
+        raise WarpisError(f"{out}: --out must be a directory")
+    if techniques:
+        from .techniques import technique_code
+
+        for t in techniques:
+            technique_code(t)
+    scene = _load(args)
+    with _progress(0, "cells") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.bar.total = total
+            bar(done, total)
+
+        result = verify(scene, techniques, estimators, n_values, args.trials, args.seed, args.receivers,
+                        args.threads, out, progress)
+    command = "warpis " + " ".join(sys.argv[1:]) if sys.argv[1:] else f"warpis verify {args.scene}"
+    if out is not None:
+        (out / "verify.md").write_text(markdown(result, command))
+        plots.calibration_plot(result.rows, out)
+        for r in sorted({row["receiver"] for row in result.rows}):
+            plots.convergence_plot(result.rows, r, out)
+    lines = [f"{scene.name}: {len(result.rows)} cells, {result.trials} trials each, {result.seconds:.0f} s"]
+    lines += summary_lines(result)
+    if out is not None:
+        lines.append(f"wrote {out / 'verify.json'}, {out / 'verify.md'} and figures")
+    _emit(result.as_json(), args.json, "\n".join(lines))
+    return 0
+
+
+def _int_list(text: str, option: str) -> list[int]:
+    try:
+        values = [int(t) for t in text.split(",") if t.strip()]
+    except ValueError:
+        raise WarpisError(f"{option} takes comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise WarpisError(f"{option} takes positive integers, got {text!r}")
+    return values
+
+
 class _progress:
     """A tqdm bar on stderr (silent when stderr is not a terminal) fed by run_trials."""
 
@@ -214,6 +264,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--receivers", type=_receiver_list, help="comma-separated receiver indices (default: all)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores; results do not depend on it)")
     c.set_defaults(func=cmd_estimate)
+
+    c = scene_command("verify", "hold measured variances against the seed's equations, cell by cell")
+    c.add_argument("--techniques", help="technique set A+B (default: light-area+cosine, or "
+                                        "light-solid-angle+phong for glossy receivers)")
+    c.add_argument("--estimators", help="comma-separated estimator specs (default: every estimator the set allows)")
+    c.add_argument("--n", help="comma-separated sample counts (default 4,16,64,256,1024)")
+    c.add_argument("--trials", type=_positive, default=400, help="trials per cell (default 400)")
+    c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    c.add_argument("--receivers", type=_receiver_list, help="comma-separated receiver indices (default: all)")
+    c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
+    c.add_argument("--out", help="directory for verify.json, verify.md and figures")
+    c.set_defaults(func=cmd_verify)
     return p
 
 

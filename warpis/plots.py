@@ -1,0 +1,87 @@
+"""matplotlib figures: calibration of each prediction and variance against N per receiver."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+FORMATS = ("png", "pdf")
+
+
+def _save(fig, out: Path, stem: str) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for ext in FORMATS:
+        path = out / f"{stem}.{ext}"
+        fig.savefig(path, dpi=120, bbox_inches="tight")
+        paths.append(path)
+    plt.close(fig)
+    return paths
+
+
+def calibration_plot(rows: Sequence[dict], out: Path, stem: str = "calibration") -> list[Path]:
+    """Per form, the histogram of z = (s² − V)/se against the N(0, 1) density.
+
+    A correct formula gives z ~ N(0, 1); a wrong one a shifted or spread histogram.
+    """
+    forms: dict[str, list[float]] = {}
+    for row in rows:
+        for form, z in row.get("z", {}).items():
+            if z is not None and form != "exact":
+                forms.setdefault(form, []).append(z)
+    names = sorted(forms)
+    if not names:
+        return []
+    cols = min(3, len(names))
+    nrows = (len(names) + cols - 1) // cols
+    fig, axes = plt.subplots(nrows, cols, figsize=(4 * cols, 3 * nrows), squeeze=False)
+    grid = np.linspace(-5, 5, 201)
+    for ax, form in zip(axes.flat, names):
+        z = np.clip(np.array(forms[form]), -8, 8)
+        ax.hist(z, bins=np.linspace(-8, 8, 33), density=True, alpha=0.6, color="C0", label=f"{len(z)} cells")
+        ax.plot(grid, np.exp(-grid**2 / 2) / np.sqrt(2 * np.pi), "k--", label="N(0, 1)")
+        ax.set_title(f"{form}: mean z {np.mean(z):.2f}, sd {np.std(z):.2f}", fontsize=9)
+        ax.set_xlabel("z = (measured − predicted) / se")
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(names):]:
+        ax.axis("off")
+    fig.tight_layout()
+    return _save(fig, out, stem)
+
+
+def convergence_plot(rows: Sequence[dict], receiver: int, out: Path, stem: str | None = None) -> list[Path]:
+    """Measured variance against N (log-log, 95% interval bars), exact predictions dashed."""
+    mine = [r for r in rows if r["receiver"] == receiver]
+    if not any(r["variance"] > 0 for r in mine):
+        return []  # an umbra receiver: every estimate is exactly 0
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    for i, est in enumerate(dict.fromkeys(r["estimator"] for r in mine)):
+        cells = sorted((r for r in mine if r["estimator"] == est), key=lambda r: r["n"])
+        cells = [c for c in cells if c["variance"] > 0]
+        if not cells:
+            continue
+        n = np.array([c["n"] for c in cells], float)
+        v = np.array([c["variance"] for c in cells])
+        lo = np.array([c["variance_ci"][0] for c in cells])
+        hi = np.array([c["variance_ci"][1] for c in cells])
+        color = f"C{i % 10}"
+        style = "o-" if i < 10 else "s-"
+        ax.errorbar(n, v, yerr=[v - np.maximum(lo, v * 1e-3), hi - v], fmt=style, ms=3, lw=1, color=color,
+                    capsize=2, label=est)
+        pred = [c["predictions"].get("exact") for c in cells]
+        if all(p is not None and p > 0 for p in pred):
+            ax.plot(n, pred, "--", color=color, lw=0.8)
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("N (samples per estimate)")
+    ax.set_ylabel("variance of one estimate")
+    ax.set_title(f"receiver {receiver}: measured (markers, 95% intervals) and exact prediction (dashed)")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=6, ncol=2)
+    return _save(fig, out, stem or f"variance-vs-n-receiver-{receiver}")
