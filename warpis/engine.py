@@ -25,6 +25,7 @@ from .techniques import light_table
 # Target work of one launch, in integrand evaluations: large enough to amortise the
 # launch, small enough that progress moves and threads balance.
 CHUNK_EVALUATIONS = 1 << 19
+CHUNKS_PER_THREAD = 16
 
 Progress = Callable[[int, int], None]  # (trials done, trials total)
 
@@ -106,8 +107,12 @@ def run_trials(
     rx_wp = wp.array(rx, dtype=wp.int32, device=dev)
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
     out = wp.zeros((len(rx), trials), dtype=wp.float64, device=dev)
+    workers = threads or default_threads()
     if chunk is None:
-        chunk = max(1, CHUNK_EVALUATIONS // max(1, len(rx) * int(n)))
+        # Big enough to amortise a launch, small enough for every thread to get many
+        # chunks (the last chunks then finish together).
+        by_work = CHUNK_EVALUATIONS // max(1, len(rx) * int(n))
+        chunk = max(1, min(by_work, -(-trials // (CHUNKS_PER_THREAD * workers))))
     chunk = max(1, min(int(chunk), trials))
     starts = list(range(0, trials, chunk))
 
@@ -129,11 +134,10 @@ def run_trials(
             if progress is not None:
                 progress(done, trials)
 
-    workers = threads or default_threads()
     if wp.get_device(dev).is_cpu and workers > 1 and len(starts) > 1:
-        run(starts[0])  # loads (compiles) the module before threads race to do it
+        wp.load_module(trial_kernel.module, device=dev)  # compile once, before threads race to
         with ThreadPoolExecutor(max_workers=workers) as pool:
-            for f in [pool.submit(run, s) for s in starts[1:]]:
+            for f in [pool.submit(run, s) for s in starts]:
                 f.result()
     else:
         for s in starts:

@@ -28,7 +28,7 @@ from .integrand import ShadingPoint, integrand, shading_point
 from .patterns import PATTERNS, grid_shape, pattern_point, pattern_problem
 from .rng import stream, uniform
 from .scene import ReceiverData, SceneData
-from .techniques import TECHNIQUES, LightTable, sample_technique, technique_pdf
+from .techniques import TECHNIQUES, LightTable, sample_direction, technique_pdf
 
 SINGLE = wp.constant(0)
 MIXTURE = wp.constant(1)
@@ -158,6 +158,18 @@ def other_pdfs(techs: wp.array(dtype=wp.int32), k: wp.int32, pdf_k: float, scene
 
 
 @wp.func
+def contribution(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
+    """f(ω) for a sampled direction; 0 for a failed sample (zero vector).
+
+    The trial kernels evaluate pdfs only where f > 0: a zero-valued sample adds nothing
+    whatever its pdf, and for light techniques the pdf is a BVH traversal.
+    """
+    if wp.length_sq(w) == 0.0:
+        return 0.0
+    return integrand(scene, sp, w)
+
+
+@wp.func
 def mixture_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
                   pattern: wp.int32, techs: wp.array(dtype=wp.int32), n: wp.int32, rows: wp.int32,
                   cols: wp.int32) -> wp.float64:
@@ -168,10 +180,11 @@ def mixture_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: w
     for i in range(n):
         u = pattern_point(pattern, s, i, n, rows, cols)
         k = wp.min(wp.int32(uniform(s_pick, i, 0) * float(n_g)), n_g - 1)
-        w, pdf = sample_technique(techs[k], scene, table, sp, u)
-        if pdf > 0.0:
-            f = integrand(scene, sp, w)
-            if f > 0.0:
+        w = sample_direction(techs[k], scene, table, sp, u)
+        f = contribution(scene, sp, w)
+        if f > 0.0:
+            pdf = technique_pdf(techs[k], scene, table, sp, w)
+            if pdf > 0.0:
                 gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
                 total = total + wp.float64(f / gbar)
     return total / wp.float64(n)
@@ -188,19 +201,21 @@ def stratified_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed
         s = stream(seed, sp.receiver, trial, k)
         for i in range(m):
             u = pattern_point(pattern, s, i, m, rows, cols)
-            w, pdf = sample_technique(techs[k], scene, table, sp, u)
-            if pdf > 0.0:
-                f = integrand(scene, sp, w)
-                if f > 0.0:
-                    if combiner == SINGLE:
-                        total = total + wp.float64(f / pdf)
-                    elif combiner == BIASED:
-                        total = total + wp.float64(f)
-                    elif combiner == BALANCE:
-                        gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
-                        total = total + wp.float64(f / gbar)
-                    else:
-                        total = total + wp.float64(f * pdf / other_pdfs(techs, k, pdf, scene, table, sp, w, 2))
+            w = sample_direction(techs[k], scene, table, sp, u)
+            f = contribution(scene, sp, w)
+            if f > 0.0:
+                if combiner == BIASED:
+                    total = total + wp.float64(f)
+                else:
+                    pdf = technique_pdf(techs[k], scene, table, sp, w)
+                    if pdf > 0.0:
+                        if combiner == SINGLE:
+                            total = total + wp.float64(f / pdf)
+                        elif combiner == BALANCE:
+                            gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
+                            total = total + wp.float64(f / gbar)
+                        else:
+                            total = total + wp.float64(f * pdf / other_pdfs(techs, k, pdf, scene, table, sp, w, 2))
     if combiner == BALANCE:
         return total / wp.float64(m * n_g)
     return total / wp.float64(m)
