@@ -217,7 +217,7 @@ def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: i
             var += (blocks.multiplicity * se) ** 2
             points += used
         result = Estimate(c * c * total, c * c * math.sqrt(var), points)
-        if result.rel_error <= rel_tol or points * 16 > max_points * est.technique_count:
+        if result.rel_error <= rel_tol or points * 4 > max_points * est.technique_count:
             return result
         sub *= 2
 
@@ -361,7 +361,11 @@ def predictions(scene: Scene, receiver: int, estimator: str | Estimator, n: int,
         if comb == "single":
             out["eq1"] = _form((mom.E_is2[0].value - mom.I_k[0].value ** 2) / n, mom.E_is2[0], 1 / n)
             inv = mom.int_inv_g[0]  # infinite unless g is uniform: then the bound says nothing
-            out["eq17"] = Estimate(mom.int_f2.value * inv / n, 0.0 if math.isinf(inv) else mom.int_f2.stderr * inv / n)
+            if mom.int_f2.value == 0:  # no light in view: f ≡ 0 and the bound is 0
+                out["eq17"] = Estimate(0.0, 0.0)
+            else:
+                out["eq17"] = Estimate(mom.int_f2.value * inv / n,
+                                       0.0 if math.isinf(inv) else mom.int_f2.stderr * inv / n)
         elif comb == "mixture":
             out["eq8"] = _form((mom.E_hbar2.value - big_i**2) / n, mom.E_hbar2, 1 / n)
         elif comb == "balance":
