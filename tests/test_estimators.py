@@ -35,6 +35,10 @@ DIFFUSE_TECHNIQUES = ("uniform", "cosine", "light-area", "light-power", "light-s
 BLIND = ("uniform", "cosine")
 # Receivers where BSDF-blind sampling meets the light often enough for a normal mean.
 BLIND_RECEIVERS = {"veach-plates": [2, 3, 6, 7, 11, 15]}
+# veach-plates' 1280 emitter triangles make every light pdf a deep BVH walk: the other
+# estimators run on one receiver per plate–light pairing of interest (small and large
+# lights on the least and most glossy plates) to keep the suite fast.
+RECEIVERS = {"veach-plates": [0, 3, 5, 10, 12, 15]}
 
 
 def scene_techniques(scene: warpis.Scene) -> tuple[str, ...]:
@@ -58,7 +62,7 @@ def estimators_for(scene: warpis.Scene) -> list[Estimator]:
 def receivers_for(scene_name: str, est: Estimator, count: int) -> list[int]:
     if any(t in BLIND for t in est.techniques) and scene_name in BLIND_RECEIVERS:
         return BLIND_RECEIVERS[scene_name]
-    return list(range(count))
+    return RECEIVERS.get(scene_name, list(range(count)))
 
 
 class _References(dict):
@@ -101,7 +105,7 @@ def test_every_estimator_is_unbiased(references, name):
         z = (mean - ref) / se_total
         if abs(z) > z_star:
             failures.append(f"{name} {spec} receiver {r}: mean {mean:.6g} reference {ref:.6g} z = {z:.2f}")
-    assert k >= 8 * len(estimators_for(scene)) // 2
+    assert k >= 6 * len(estimators_for(scene))
     assert not failures, f"{len(failures)} of {k} cells beyond z* = {z_star:.2f}:\n" + "\n".join(failures[:20])
 
 

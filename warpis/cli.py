@@ -1,4 +1,4 @@
-"""The ``warpis`` command: scenes, info, reference, estimate.
+"""The ``warpis`` command: scenes, info, reference, estimate, verify, study, demo.
 
 Bad input (files, scenes, estimator specs, options) ends with one line on stderr,
 ``warpis: error: <file or option>: <problem>``, and exit status 2; nothing is written.
@@ -197,6 +197,51 @@ def cmd_verify(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_study(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .study import default_out, load_study
+
+    study = load_study(Path(args.file), threads=args.threads)
+    return _run_study(study, Path(args.out) if args.out else default_out(study))
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .study import default_out, demo_study
+
+    study = demo_study(threads=args.threads)
+    return _run_study(study, Path(args.out) if args.out else default_out(study))
+
+
+def _run_study(study, out) -> int:
+    """Run a validated study into ``out`` with a bar of cells done and time left; say where it wrote."""
+    from .study import run_study
+
+    if out.exists() and not out.is_dir():
+        raise WarpisError(f"{out}: --out must be a directory")
+    cells = len(study.cells())
+    print(f"study {study.name}: {cells} cells ({len(study.scenes)} scene(s) × {len(study.estimators)} estimator(s) "
+          f"× {len(study.n)} N), {study.trials} trials each, into {out}", flush=True)
+    with _progress(0, "cells") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.bar.total = total
+            bar.bar.refresh()
+            bar(done, total)
+
+        def log(line: str) -> None:
+            bar.bar.write(line, file=sys.stdout)
+            sys.stdout.flush()
+
+        run = run_study(study, out, progress=progress, log=log)
+    print(f"computed {run.computed} cell(s), skipped {run.skipped} already finished; "
+          f"{len(run.rows)} rows in {out / 'results.csv'}")
+    print(f"wrote {out / 'report.md'}, {out / 'summary.json'} and {len(run.figures)} figure file(s) in "
+          f"{out / 'figures'}")
+    return 0
+
+
 def _int_list(text: str, option: str) -> list[int]:
     try:
         values = [int(t) for t in text.split(",") if t.strip()]
@@ -276,6 +321,22 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
     c.add_argument("--out", help="directory for verify.json, verify.md and figures")
     c.set_defaults(func=cmd_verify)
+
+    c = sub.add_parser("study", help="run a study file (scenes × estimators × N) into results, figures and a report; "
+                                     "resumable", description="run a study file (scenes × estimators × N) into "
+                                                              "results.csv, summary.json, figures and report.md; "
+                                                              "rerunning skips finished cells")
+    c.add_argument("file", help="the study TOML (see README, 'Studies')")
+    c.add_argument("--out", help="output directory (default ./warpis-out/<name>/)")
+    c.add_argument("--threads", type=_positive, help="CPU threads (default: the study's, else all cores)")
+    c.set_defaults(func=cmd_study)
+
+    c = sub.add_parser("demo", help="the main job: ten estimators on occluded-quad, variance against N, "
+                                    "slopes and predictions (1–2 minutes)",
+                       description="run the built-in demo study (scripts/studies/demo.toml) on occluded-quad")
+    c.add_argument("--out", help="output directory (default ./warpis-out/demo/)")
+    c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
+    c.set_defaults(func=cmd_demo)
     return p
 
 

@@ -85,3 +85,121 @@ def convergence_plot(rows: Sequence[dict], receiver: int, out: Path, stem: str |
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=6, ncol=2)
     return _save(fig, out, stem or f"variance-vs-n-receiver-{receiver}")
+
+
+# --------------------------------------------------------------------------- studies
+
+
+def _slug(text: str) -> str:
+    """A file-name-safe version of a scene or estimator name."""
+    out = "".join(ch if ch.isalnum() or ch in "._-" else "-" for ch in text)
+    return out.strip("-") or "x"
+
+
+def slope_convergence_plot(series: Sequence[dict], title: str, out: Path, stem: str) -> list[Path]:
+    """Variance against N (log-log) with a line per estimator, interval bars, fitted slopes.
+
+    Each entry of ``series``: ``label``, ``n``, ``variance``, ``lo``, ``hi`` (lists over N),
+    optionally ``prediction`` (a list, drawn dashed; None entries are skipped) and
+    ``slope`` (``(slope, lo, hi)`` or None), shown in the legend.  Points with zero
+    variance are left out; with nothing left the figure is not made.
+    """
+    fig, ax = plt.subplots(figsize=(8.5, 5.8))
+    drawn = 0
+    for i, s in enumerate(series):
+        n = np.asarray(s["n"], float)
+        v = np.asarray(s["variance"], float)
+        keep = v > 0
+        if not keep.any():
+            continue
+        lo = np.maximum(np.asarray(s["lo"], float), v * 1e-3)
+        hi = np.asarray(s["hi"], float)
+        color = f"C{i % 10}"
+        style = "o-" if i < 10 else "s-"
+        label = s["label"]
+        if s.get("slope") is not None:
+            k, k_lo, k_hi = s["slope"]
+            label = f"{label}: slope {k:.2f} [{k_lo:.2f}, {k_hi:.2f}]"
+        ax.errorbar(n[keep], v[keep], yerr=[(v - lo)[keep], (hi - v)[keep]], fmt=style, ms=3, lw=1, color=color,
+                    capsize=2, label=label)
+        pred = s.get("prediction")
+        if pred is not None:
+            p = np.array([np.nan if x is None else x for x in pred], float)
+            ok = np.isfinite(p) & (p > 0)
+            if ok.sum() >= 1:
+                ax.plot(n[ok], p[ok], "--", color=color, lw=0.8)
+        drawn += 1
+    if not drawn:
+        plt.close(fig)
+        return []
+    ax.set_xscale("log", base=2)
+    ax.set_yscale("log")
+    ax.set_xlabel("N (samples per estimate)")
+    ax.set_ylabel("variance of one estimate")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=6, ncol=1 if drawn <= 6 else 2, title="measured, 95% intervals; fitted slope [95%]",
+              title_fontsize=6)
+    return _save(fig, out, stem)
+
+
+def variance_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str) -> list[Path]:
+    """A panel per estimator of the variance over a receiver grid, on one shared log colour scale.
+
+    ``panels``: (label, (rows, cols) array) with NaN where a receiver was not measured;
+    zero variance (an umbra) is drawn grey.
+    """
+    from matplotlib.colors import LogNorm
+
+    positive = np.concatenate([a[np.isfinite(a) & (a > 0)] for _, a in panels]) if panels else np.array([])
+    if positive.size == 0:
+        return []
+    norm = LogNorm(vmin=float(positive.min()), vmax=float(max(positive.max(), positive.min() * 1.0001)))
+    cols = min(4, len(panels))
+    nrows = (len(panels) + cols - 1) // cols
+    fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 3.0 * nrows), squeeze=False)
+    cmap = plt.get_cmap("viridis").copy()
+    cmap.set_bad("0.75")
+    image = None
+    for ax, (label, grid) in zip(axes.flat, panels):
+        shown = np.ma.masked_where(~(np.isfinite(grid) & (grid > 0)), grid)
+        image = ax.imshow(shown, origin="lower", cmap=cmap, norm=norm, interpolation="nearest", aspect="auto")
+        ax.set_title(label, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="variance (grey: zero or not measured)")
+    return _save(fig, out, stem)
+
+
+def ratio_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str) -> list[Path]:
+    """Panels of a variance ratio over a receiver grid, log colour scale centred on 1.
+
+    ``panels``: (label, (rows, cols) array of ratios); NaN or non-positive entries are grey.
+    """
+    from matplotlib.colors import LogNorm
+
+    finite = np.concatenate([a[np.isfinite(a) & (a > 0)] for _, a in panels]) if panels else np.array([])
+    if finite.size == 0:
+        return []
+    span = float(np.exp(np.max(np.abs(np.log(finite)))))
+    span = max(span, 1.01)
+    norm = LogNorm(vmin=1 / span, vmax=span)
+    cols = min(4, len(panels))
+    nrows = (len(panels) + cols - 1) // cols
+    fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 3.0 * nrows), squeeze=False)
+    cmap = plt.get_cmap("RdBu_r").copy()
+    cmap.set_bad("0.75")
+    image = None
+    for ax, (label, grid) in zip(axes.flat, panels):
+        shown = np.ma.masked_where(~(np.isfinite(grid) & (grid > 0)), grid)
+        image = ax.imshow(shown, origin="lower", cmap=cmap, norm=norm, interpolation="nearest", aspect="auto")
+        ax.set_title(label, fontsize=8)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.suptitle(title, fontsize=10)
+    fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="variance ratio (grey: undefined)")
+    return _save(fig, out, stem)

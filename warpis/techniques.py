@@ -133,9 +133,17 @@ def rescale(x: float, lo: float, hi: float) -> float:
     return wp.clamp((x - lo) / wp.max(hi - lo, 1.0e-30), 0.0, 0.99999994)
 
 
+EDGE_SLACK = wp.constant(1.0e-6)
+
+
 @wp.func
 def ray_triangle(o: wp.vec3, w: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
-    """Distance t > 0 at which the ray (o, ω) crosses triangle abc, or −1 (Möller–Trumbore)."""
+    """Distance t > 0 at which the ray (o, ω) crosses triangle abc, or −1 (Möller–Trumbore).
+
+    Edges are widened by ``EDGE_SLACK`` in barycentric terms: the test is not watertight,
+    and without slack about 1e-6 of the points sampled on a light fall between its
+    triangles; the duplicate a widened edge can cause is removed by ``light_pdf``.
+    """
     e1 = b - a
     e2 = c - a
     pv = wp.cross(w, e2)
@@ -145,11 +153,11 @@ def ray_triangle(o: wp.vec3, w: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> 
     inv = 1.0 / det
     tv = o - a
     bu = wp.dot(tv, pv) * inv
-    if bu < 0.0 or bu > 1.0:
+    if bu < -EDGE_SLACK or bu > 1.0 + EDGE_SLACK:
         return -1.0
     qv = wp.cross(tv, e1)
     bv = wp.dot(w, qv) * inv
-    if bv < 0.0 or bu + bv > 1.0:
+    if bv < -EDGE_SLACK or bu + bv > 1.0 + EDGE_SLACK:
         return -1.0
     t = wp.dot(e2, qv) * inv
     return wp.where(t > 0.0, t, -1.0)

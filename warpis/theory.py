@@ -30,9 +30,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import warp as wp
 
+from .engine import default_threads
 from .estimators import Estimator, parse_estimator
 from .integrand import ShadingPoint, integrand, shading_point
 from .patterns import grid_shape
@@ -41,7 +44,8 @@ from .techniques import TECHNIQUES, LightTable, light_table, sample_technique, t
 
 REL_TOL = 0.01
 REPLICAS = 8
-MAX_POINTS = 1 << 22  # per technique and quantity, over all replicas
+MIN_POINTS = 1 << 17  # per technique and block layout, over all replicas
+MAX_POINTS = 1 << 21  # per technique and block layout, over all replicas
 SEED = 0x7E0
 
 
@@ -71,15 +75,35 @@ def _evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, r:
 
 def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray]:
-    """f (P,) and the pdfs (P, N_g) of all ``techniques`` at T_k(u) for points u (P, 2)."""
+    """f (P,) and the pdfs (P, N_g) of all ``techniques`` at T_k(u) for points u (P, 2).
+
+    On the CPU the points are split over the engine's worker threads (one launch each).
+    """
     dev = scene.device
     codes = wp.array(np.array([TECHNIQUES[t] for t in techniques], np.int32), dtype=wp.int32, device=dev)
-    uu = wp.array(np.ascontiguousarray(u, np.float32), dtype=wp.vec2, device=dev)
-    f = wp.zeros(len(u), dtype=wp.float64, device=dev)
-    pdf = wp.zeros((len(u), len(techniques)), dtype=wp.float64, device=dev)
-    wp.launch(_evaluate_kernel, dim=len(u), device=dev,
-              inputs=[scene.data, scene.receiver_data, light_table(scene), receiver, codes, k, uu, f, pdf])
-    return f.numpy(), pdf.numpy()
+    table = light_table(scene)
+    f_all = np.empty(len(u))
+    pdf_all = np.empty((len(u), len(techniques)))
+
+    def run(lo: int, hi: int) -> None:
+        uu = wp.array(np.ascontiguousarray(u[lo:hi], np.float32), dtype=wp.vec2, device=dev)
+        f = wp.zeros(hi - lo, dtype=wp.float64, device=dev)
+        pdf = wp.zeros((hi - lo, len(techniques)), dtype=wp.float64, device=dev)
+        wp.launch(_evaluate_kernel, dim=hi - lo, device=dev,
+                  inputs=[scene.data, scene.receiver_data, table, receiver, codes, k, uu, f, pdf])
+        f_all[lo:hi] = f.numpy()
+        pdf_all[lo:hi] = pdf.numpy()
+
+    workers = default_threads() if wp.get_device(dev).is_cpu and len(u) >= 1 << 14 else 1
+    bounds = [int(b) for b in np.linspace(0, len(u), workers + 1)]
+    if workers == 1:
+        run(0, len(u))
+    else:
+        wp.load_module(_evaluate_kernel.module, device=dev)
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for fut in [pool.submit(run, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]:
+                fut.result()
+    return f_all, pdf_all
 
 
 def weighted_values(combiner: str, k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
@@ -198,25 +222,44 @@ def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: i
                    seed: int = SEED, max_points: int = MAX_POINTS) -> Estimate:
     """The exact variance of one estimate (N = ``n``) at one receiver, to ``rel_tol``.
 
-    Densities rise ×4 per block until the jackknife relative error is ≤ ``rel_tol`` or
-    ``max_points`` per technique would be exceeded; the returned Estimate carries the
-    error reached either way.
+    Var = c² · multiplicity · Σ_k Σ_b Var(block sum).  The block sums are computed once
+    per block layout and cached on the scene: for ``independent`` and ``antithetic`` the
+    layout (one block over the whole square) is the same for every N.
     """
     est = parse_estimator(estimator)
     est.check_n(n)
-    m = est.per_technique(n)
-    blocks = blocks_of(est.pattern, m)
+    blocks = blocks_of(est.pattern, est.per_technique(n))
     c = combiner_scale(est, n)
-    sub = 2 if blocks.count > 1 else 32
-    rng = np.random.default_rng([seed, receiver, n])
+    cache = scene.__dict__.setdefault("_block_variance_cache", {})
+    key = (receiver, est.pattern, est.combiner, est.techniques, blocks.count, blocks.cells, rel_tol, seed, max_points)
+    if key not in cache:
+        cache[key] = block_variance(scene, receiver, est, blocks, rel_tol, seed, max_points)
+    v = cache[key]
+    scale = c * c * blocks.multiplicity
+    return Estimate(scale * v.value, scale * v.stderr, v.points)
+
+
+def block_variance(scene: Scene, receiver: int, est: Estimator, blocks: Blocks, rel_tol: float = REL_TOL,
+                   seed: int = SEED, max_points: int = MAX_POINTS) -> Estimate:
+    """Σ over technique streams and listed blocks of Var(block sum of ψ), to ``rel_tol``.
+
+    The density starts at ``MIN_POINTS`` per technique (rare features such as a tiny
+    bright light must be seen by every replica for the jackknife error to mean anything)
+    and rises ×4 until the jackknife relative error is ≤ ``rel_tol`` or the next step
+    would pass ``max_points`` per technique; the Estimate carries the error reached.
+    """
+    sub = 2
+    while blocks.count * sub * sub * REPLICAS < MIN_POINTS:
+        sub *= 2
+    rng = np.random.default_rng([seed, receiver, blocks.count, blocks.cells[0]])
     while True:
         total, var, points = 0.0, 0.0, 0
         for q, p, used in _block_moments(scene, receiver, est, blocks, sub, rng):
             v, se = _jackknife(q, p)
-            total += blocks.multiplicity * v
-            var += (blocks.multiplicity * se) ** 2
+            total += v
+            var += se * se
             points += used
-        result = Estimate(c * c * total, c * c * math.sqrt(var), points)
+        result = Estimate(total, math.sqrt(var), points)
         if result.rel_error <= rel_tol or points * 4 > max_points * est.technique_count:
             return result
         sub *= 2

@@ -1,0 +1,762 @@
+"""Studies: a TOML file of scenes × estimators × N, run cell by cell into files that survive a kill.
+
+A study file holds one ``[study]`` table (README.md, "Studies", gives the format).  A
+*cell* is scene × estimator × N over the study's receivers of that scene; each cell adds
+one row per receiver to ``OUT/results.csv`` and refreshes ``OUT/summary.json``.  Both are
+rewritten after every cell through a temporary file and :func:`os.replace`, so a run killed
+at any moment leaves valid files holding every finished cell.
+
+Each cell has a *key*: a hash of the scene file's and its mesh files' content, the
+estimator, N, the trials, the seed, the receivers, whether predictions are attached and
+the warpis version.  Rows carry their key (column ``cell``).  A rerun reads the rows back,
+keeps every row whose key is still in the study *verbatim* (its ``seconds`` included),
+drops the rows of cells no longer in the study, computes only the missing cells and
+writes the files in the canonical cell order (scenes, then estimators, then N, as listed;
+receivers in order within a cell).  Every number is deterministic, so a resumed run ends
+with the same files as an uninterrupted one, except the ``seconds`` of the cells the
+second run computed.  ``summary.json`` holds no timings and is byte-identical.
+
+After the last cell the figures (``OUT/figures/``) and ``OUT/report.md`` are written from
+the rows: convergence plots with fitted slopes, variance maps over a receiver grid and a
+calibration plot of the predictions.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import time
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .engine import run_trials, select_receivers
+from .errors import WarpisError
+from .estimators import Estimator, parse_estimator
+from .scene import Scene, bundled_scenes, load_scene, resolve_scene_path
+from .stats import fit_slope, variance_interval
+
+STUDY_KEYS = ("name", "description", "seed", "trials", "n", "scenes", "estimators", "receivers", "predictions",
+              "outputs", "threads")
+OUTPUTS = ("convergence", "maps", "calibration")
+# Every prediction form of theory.predictions, in the order of the CSV's columns.
+FORMS = ("exact", "eq1", "eq6", "eq7-printed", "eq7-exact", "eq8", "eq10-printed", "eq10-exact", "eq14-printed",
+         "eq14-exact", "eq17", "eq19", "eq20", "power-exact", "mixture-exact", "antithetic-exact",
+         "jittered-antithetic-exact", "veach-bound")
+BOUND_FORMS = ("eq17", "eq20", "veach-bound")
+Z_FORMS = tuple(f for f in FORMS if f not in BOUND_FORMS)
+HEADER = (["scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mean_stderr", "reference",
+           "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi"]
+          + [f"pred_{f}" for f in FORMS] + [f"z_{f}" for f in Z_FORMS] + ["seconds", "warpis_version", "cell"])
+MIN_TRIALS = 4
+# Convergence figures per scene: the first receivers of the study's list for that scene.
+MAX_CONVERGENCE_RECEIVERS = 8
+Z95 = 1.959963984540054
+
+# The built-in study of ``warpis demo`` (scripts/studies/demo.toml is the same study as a file).
+DEMO_ESTIMATORS = {
+    "random": "independent:single:uniform",
+    "jittered": "jittered:single:uniform",
+    "light IS": "independent:single:light-area",
+    "cosine IS": "independent:single:cosine",
+    "jittered IS": "jittered:single:light-area",
+    "MIS": "independent:balance:light-area+cosine",
+    "jittered MIS": "jittered:balance:light-area+cosine",
+    "antithetic": "antithetic:single:light-area",
+    "jittered antithetic": "jittered-antithetic:single:light-area",
+    "biased IS": "independent:biased:cosine",
+}
+DEMO = {
+    "name": "demo",
+    "description": "Ten estimators of direct illumination on occluded-quad: lit, penumbra and umbra receivers.",
+    "seed": 1,
+    "trials": 6000,
+    "n": [4, 16, 64, 256],
+    "scenes": ["occluded-quad"],
+    "estimators": list(DEMO_ESTIMATORS.values()),
+}
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
+# --------------------------------------------------------------------------- the study
+
+
+@dataclass
+class StudyScene:
+    """One scene of a study: as written, loaded, its receivers and a digest of its files."""
+
+    source: str
+    scene: Scene
+    receivers: list[int]
+    digest: str
+
+    @property
+    def name(self) -> str:
+        return self.scene.name
+
+
+@dataclass(frozen=True)
+class Cell:
+    """scene × estimator × N, over the study's receivers of that scene."""
+
+    scene: StudyScene
+    estimator: Estimator
+    n: int
+    key: str
+
+
+@dataclass
+class Study:
+    """A validated study: everything checked and every scene loaded."""
+
+    name: str
+    seed: int
+    trials: int
+    n: list[int]
+    scenes: list[StudyScene]
+    estimators: list[Estimator]
+    predictions: bool = True
+    outputs: tuple[str, ...] = OUTPUTS
+    threads: int | None = None
+    description: str = ""
+    source: str = ""  # the study file, or a word for a built-in study
+
+    def cells(self) -> list[Cell]:
+        """Every cell, in the canonical order: scenes, then estimators, then N, as listed."""
+        return [Cell(s, e, n, cell_key(self, s, e, n)) for s in self.scenes for e in self.estimators for n in self.n]
+
+
+def cell_key(study: Study, scene: StudyScene, est: Estimator, n: int) -> str:
+    """The hash that says whether a finished cell can be reused."""
+    data = {"scene": scene.digest, "scene_name": scene.name, "estimator": est.spec, "n": int(n),
+            "trials": study.trials, "seed": study.seed, "receivers": scene.receivers,
+            "predictions": study.predictions, "warpis": _version()}
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def scene_digest(scene: Scene) -> str:
+    """sha256 of the scene file and of every mesh file it names (in order)."""
+    h = hashlib.sha256(scene.path.read_bytes())
+    for rel in dict.fromkeys(scene.mesh_paths):
+        h.update(b"\0" + rel.encode() + b"\0")
+        h.update((scene.path.parent / rel).read_bytes())
+    return h.hexdigest()
+
+
+def load_study(path: str | Path, threads: int | None = None) -> Study:
+    """Read and validate a study file; every scene is loaded.  One-line WarpisError naming the file."""
+    file = Path(path)
+    try:
+        with open(file, "rb") as fh:
+            doc = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise WarpisError(f"{file}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise WarpisError(f"{file}: not valid TOML: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except OSError as exc:
+        raise WarpisError(f"{file}: cannot read: {exc.strerror}") from None
+    unknown = sorted(set(doc) - {"study"})
+    if unknown:
+        raise WarpisError(f"{file}: unknown key {unknown[0]!r} at the top level (a study file holds one [study] table)")
+    if not isinstance(doc.get("study"), dict):
+        raise WarpisError(f"{file}: missing [study] table")
+    return study_from_dict(doc["study"], str(file), file.parent, threads=threads)
+
+
+def study_from_dict(table: dict[str, Any], where: str, base: Path | None, threads: int | None = None) -> Study:
+    """Validate a ``[study]`` table; ``where`` names it in errors, scene paths are relative to ``base``.
+
+    Nothing is run: every check (keys, types, estimators, every estimator × N, trials,
+    receivers) is made and every scene loaded, so a study that passes runs to the end.
+    """
+    def bad(problem: str) -> WarpisError:
+        return WarpisError(f"{where}: {problem}")
+
+    unknown = sorted(set(table) - set(STUDY_KEYS))
+    if unknown:
+        raise bad(f"unknown key {unknown[0]!r} in [study] (allowed: {', '.join(STUDY_KEYS)})")
+    for key in ("name", "trials", "n", "scenes", "estimators"):
+        if key not in table:
+            raise bad(f"missing key {key!r} in [study]")
+
+    name = table["name"]
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name):
+        raise bad(f"name must be a word of letters, digits, '.', '_' or '-' (it names the output folder), got {name!r}")
+    description = table.get("description", "")
+    if not isinstance(description, str):
+        raise bad("description must be a string")
+    seed = _integer(table.get("seed", 0), "seed", bad)
+    if not 0 <= seed < 2**32:
+        raise bad(f"seed must be in [0, 2^32), got {seed}")
+    trials = _integer(table["trials"], "trials", bad)
+    if trials < MIN_TRIALS:
+        raise bad(f"trials must be at least {MIN_TRIALS} to give a variance interval, got {trials}")
+    n_values = _integer_list(table["n"], "n", bad)
+    if min(n_values) < 1:
+        raise bad(f"n takes positive sample counts, got {min(n_values)}")
+
+    specs = _string_list(table["estimators"], "estimators", bad)
+    estimators = []
+    for spec in specs:
+        try:
+            estimators.append(parse_estimator(spec))
+        except WarpisError as exc:
+            raise bad(f"estimators: {exc}") from None
+    _no_duplicates([e.spec for e in estimators], "estimators", bad)
+    for est in estimators:
+        for n in n_values:
+            try:
+                est.check_n(n)
+            except WarpisError as exc:
+                raise bad(f"n: {exc}") from None
+
+    predictions = table.get("predictions", True)
+    if not isinstance(predictions, bool):
+        raise bad(f"predictions must be true or false, got {predictions!r}")
+    outputs = table.get("outputs", list(OUTPUTS))
+    outputs = _string_list(outputs, "outputs", bad, empty=True)
+    for o in outputs:
+        if o not in OUTPUTS:
+            raise bad(f"unknown output {o!r} (valid: {', '.join(OUTPUTS)})")
+    file_threads = table.get("threads")
+    if file_threads is not None:
+        file_threads = _integer(file_threads, "threads", bad)
+        if file_threads < 1:
+            raise bad(f"threads must be at least 1, got {file_threads}")
+
+    sources = _string_list(table["scenes"], "scenes", bad)
+    _no_duplicates(sources, "scenes", bad)
+    receivers = table.get("receivers")
+    if receivers is not None and not isinstance(receivers, (list, dict)):
+        raise bad("receivers must be a list of indices (for every scene) or a table scene → list")
+    if isinstance(receivers, dict):
+        for key in receivers:
+            if key not in sources:
+                raise bad(f"receivers: {key!r} is not one of the study's scenes ({', '.join(sources)})")
+
+    scenes: list[StudyScene] = []
+    for source in sources:
+        scene = _load_scene(source, base, bad)
+        chosen = receivers.get(source) if isinstance(receivers, dict) else receivers
+        if chosen is None:
+            idx = list(range(len(scene.receivers)))
+        else:
+            idx = _integer_list(chosen, f"receivers of {source!r}" if isinstance(receivers, dict) else "receivers",
+                                bad)
+            try:
+                select_receivers(scene, idx)
+            except WarpisError as exc:
+                raise bad(f"receivers: {exc}") from None
+        if any(s.name == scene.name for s in scenes):
+            raise bad(f"two scenes are named {scene.name!r}; rows could not tell them apart")
+        scenes.append(StudyScene(source, scene, idx, scene_digest(scene)))
+
+    return Study(name=name, seed=seed, trials=trials, n=n_values, scenes=scenes, estimators=estimators,
+                 predictions=predictions, outputs=tuple(o for o in OUTPUTS if o in outputs),
+                 threads=threads or file_threads, description=description, source=where)
+
+
+def demo_study(threads: int | None = None) -> Study:
+    """The built-in study of ``warpis demo``."""
+    return study_from_dict(DEMO, "demo", None, threads=threads)
+
+
+def _load_scene(source: str, base: Path | None, bad) -> Scene:
+    """A bundled name or a path relative to the study file → the loaded scene."""
+    path = None
+    if base is not None:
+        candidate = base / source
+        if candidate.is_file() or (candidate.is_dir() and (candidate / "scene.toml").is_file()):
+            path = resolve_scene_path(candidate)
+    if path is None:
+        if "/" not in source and "\\" not in source and source in bundled_scenes():
+            path = resolve_scene_path(source)
+        else:
+            where = base / source if base is not None else Path(source)
+            raise bad(f"scenes: {source!r}: no such scene file ({where}) and no bundled scene of that name "
+                      f"(bundled: {', '.join(bundled_scenes())})")
+    try:
+        return load_scene(path)
+    except WarpisError as exc:
+        raise bad(f"scene {source!r}: {exc}") from None
+
+
+def _integer(value: Any, what: str, bad) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise bad(f"{what} must be an integer, got {value!r}")
+    return value
+
+
+def _integer_list(value: Any, what: str, bad) -> list[int]:
+    if not isinstance(value, list) or not value:
+        raise bad(f"{what} must be a non-empty list of integers, got {value!r}")
+    out = [_integer(v, f"each entry of {what}", bad) for v in value]
+    _no_duplicates(out, what, bad)
+    return out
+
+
+def _string_list(value: Any, what: str, bad, empty: bool = False) -> list[str]:
+    if not isinstance(value, list) or (not value and not empty) or not all(isinstance(v, str) for v in value):
+        raise bad(f"{what} must be a {'' if empty else 'non-empty '}list of strings, got {value!r}")
+    return list(value)
+
+
+def _no_duplicates(values: list, what: str, bad) -> None:
+    seen = set()
+    for v in values:
+        if v in seen:
+            raise bad(f"{what} lists {v!r} twice")
+        seen.add(v)
+
+
+def default_out(study: Study) -> Path:
+    """``./warpis-out/<name>/``."""
+    return Path("warpis-out") / study.name
+
+
+# --------------------------------------------------------------------------- rows
+
+
+def _num(x: float | None) -> str:
+    """A float as the shortest text that reads back to the same float ('' for None)."""
+    if x is None:
+        return ""
+    return repr(float(x))
+
+
+def _parse(text: str) -> float | None:
+    return float(text) if text != "" else None
+
+
+def typed_row(raw: list[str]) -> dict[str, Any]:
+    """A CSV row (strings) → a dict of numbers, with ``predictions``/``z``/``inside`` as in verify.json."""
+    d = dict(zip(HEADER, raw))
+    row: dict[str, Any] = {"scene": d["scene"], "receiver": int(d["receiver"]), "estimator": d["estimator"],
+                           "n": int(d["n"]), "trials": int(d["trials"]), "seed": int(d["seed"]),
+                           "warpis_version": d["warpis_version"], "cell": d["cell"]}
+    for k in ("mean", "mean_stderr", "reference", "reference_stderr", "variance", "variance_stderr",
+              "variance_lo", "variance_hi", "seconds"):
+        row[k] = _parse(d[k])
+    row["variance_ci"] = [row["variance_lo"], row["variance_hi"]]
+    preds = {f: _parse(d[f"pred_{f}"]) for f in FORMS if d[f"pred_{f}"] != ""}
+    row["predictions"] = {f: (v if v is not None and math.isfinite(v) else None) for f, v in preds.items()}
+    row["z"] = {f: _parse(d[f"z_{f}"]) for f in Z_FORMS if f in preds}
+    inside = {}
+    for f, v in preds.items():
+        if f in BOUND_FORMS:
+            inside[f] = bool(row["variance_lo"] <= v)
+        else:
+            z = row["z"].get(f)
+            inside[f] = bool(z is not None and abs(z) <= Z95) or (z is None and v == row["variance"])
+    row["inside"] = inside
+    return row
+
+
+class _Caches:
+    """Per run: references per scene, moments per (scene, receiver, techniques)."""
+
+    def __init__(self) -> None:
+        self.references: dict[str, dict[int, Any]] = {}
+        self.moments: dict[tuple, Any] = {}
+
+    def reference(self, s: StudyScene) -> dict[int, Any]:
+        from .reference import reference
+
+        if s.name not in self.references:
+            self.references[s.name] = {r.index: r for r in reference(s.scene, s.receivers)}
+        return self.references[s.name]
+
+    def moments_of(self, s: StudyScene, r: int, techniques: tuple[str, ...]):
+        from .theory import moments
+
+        key = (s.name, r, techniques)
+        if key not in self.moments:
+            self.moments[key] = moments(s.scene, r, techniques)
+        return self.moments[key]
+
+
+def compute_cell(study: Study, cell: Cell, caches: _Caches) -> list[list[str]]:
+    """Run one cell: M trials at every receiver, predictions if asked → CSV rows (strings)."""
+    from .theory import predictions
+
+    start = time.perf_counter()
+    s, est, n = cell.scene, cell.estimator, cell.n
+    values = run_trials(s.scene, est, n, study.trials, seed=study.seed, receivers=s.receivers, threads=study.threads)
+    stats = variance_interval(values)
+    refs = caches.reference(s)
+    body = []
+    for i, r in enumerate(s.receivers):
+        var, se = float(stats.variance[i]), float(stats.variance_stderr[i])
+        pred: dict[str, Any] = {}
+        if study.predictions:
+            with np.errstate(all="ignore"):
+                pred = predictions(s.scene, r, est, n, mom=caches.moments_of(s, r, est.techniques))
+        z = {}
+        for form, e in pred.items():
+            if form in Z_FORMS:
+                scale = math.hypot(se, e.stderr)
+                value = (var - e.value) / scale if scale > 0 else None
+                z[form] = value if value is not None and math.isfinite(value) else None
+        ref = refs[r]
+        body.append([s.name, str(r), est.spec, str(n), str(study.trials), str(study.seed),
+                     _num(stats.mean[i]), _num(stats.mean_stderr[i]), _num(ref.value), _num(ref.stderr),
+                     _num(var), _num(se), _num(stats.lo[i]), _num(stats.hi[i])]
+                    + [_num(pred[f].value) if f in pred else "" for f in FORMS]
+                    + [_num(z.get(f)) for f in Z_FORMS])
+    seconds = f"{time.perf_counter() - start:.3f}"
+    return [row + [seconds, _version(), cell.key] for row in body]
+
+
+# --------------------------------------------------------------------------- files
+
+
+def read_rows(path: Path) -> tuple[dict[str, list[list[str]]], str | None]:
+    """Rows of an earlier ``results.csv`` grouped by cell key, and a note when they are unusable."""
+    if not path.is_file():
+        return {}, None
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        return {}, f"cannot read {path} ({exc}); recomputing every cell"
+    if not rows or rows[0] != HEADER:
+        return {}, f"{path} has other columns (another warpis version?); recomputing every cell"
+    out: dict[str, list[list[str]]] = {}
+    for row in rows[1:]:
+        if len(row) == len(HEADER):
+            out.setdefault(row[-1], []).append(row)
+    return out, None
+
+
+def _finished(rows: list[list[str]] | None, cell: Cell) -> bool:
+    return rows is not None and [r[1] for r in rows] == [str(i) for i in cell.scene.receivers]
+
+
+def _replace(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically: a temporary file beside it, then os.replace."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", encoding="utf-8", newline="") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def csv_text(cells: list[Cell], done: dict[str, list[list[str]]]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(HEADER)
+    for c in cells:
+        if c.key in done:
+            w.writerows(done[c.key])
+    return buf.getvalue()
+
+
+def write_results(out: Path, study: Study, cells: list[Cell], done: dict[str, list[list[str]]]) -> None:
+    """results.csv, then summary.json, each replaced atomically."""
+    _replace(out / "results.csv", csv_text(cells, done))
+    rows = [typed_row(r) for c in cells if c.key in done for r in done[c.key]]
+    _replace(out / "summary.json", json.dumps(summary(study, cells, done, rows), indent=1) + "\n")
+
+
+# --------------------------------------------------------------------------- summaries
+
+
+def expected_slope(est: Estimator) -> dict[str, float]:
+    """The rate theory expects for variance against N: smooth integrand, and with discontinuities.
+
+    −1 for independent and antithetic patterns (IS, MIS, mixture, biased alike): they
+    change the constant, not the rate.  Jittered patterns: about −2 on smooth 2D
+    integrands and about −1.5 where the integrand has edges (shadow boundaries, light
+    silhouettes under BSDF sampling).  The mixture picks its technique at random per
+    sample, which is not stratified: −1 whatever the pattern.
+    """
+    if est.pattern in ("jittered", "jittered-antithetic") and est.combiner != "mixture":
+        return {"smooth": -2.0, "discontinuous": -1.5}
+    return {"smooth": -1.0, "discontinuous": -1.0}
+
+
+def expected_text(est: Estimator) -> str:
+    e = expected_slope(est)
+    if e["smooth"] == e["discontinuous"]:
+        return f"{e['smooth']:g}"
+    return f"{e['smooth']:g} smooth, {e['discontinuous']:g} with edges"
+
+
+def slopes(rows: list[dict], study: Study) -> list[dict]:
+    """Per scene × receiver × estimator: the fitted slope of log variance against log N.
+
+    Weighted by the variance intervals (``stats.fit_slope`` with se(s²)); cells whose
+    variance or its standard error is 0 (an umbra) are left out, and a slope needs two N.
+    """
+    out = []
+    by: dict[tuple, list[dict]] = {}
+    for row in rows:
+        by.setdefault((row["scene"], row["receiver"], row["estimator"]), []).append(row)
+    for s in study.scenes:
+        for r in s.receivers:
+            for est in study.estimators:
+                cells = sorted(by.get((s.name, r, est.spec), []), key=lambda c: c["n"])
+                use = [c for c in cells if c["variance"] > 0 and c["variance_stderr"] > 0]
+                entry = {"scene": s.name, "receiver": r, "estimator": est.spec, "points": len(use),
+                         "slope": None, "slope_lo": None, "slope_hi": None, "expected": expected_slope(est)}
+                if len({c["n"] for c in use}) >= 2:
+                    fit = fit_slope([c["n"] for c in use], [c["variance"] for c in use],
+                                    [c["variance_stderr"] for c in use])
+                    entry.update(slope=fit.slope, slope_lo=fit.slope_lo, slope_hi=fit.slope_hi)
+                if cells:
+                    out.append(entry)
+    return out
+
+
+def form_summaries(rows: list[dict]) -> list[dict]:
+    from .verify import summarize
+
+    return [{"form": s.form, "kind": "bound" if s.bound else "equation", "cells": s.cells, "inside": s.inside,
+             "median_ratio": s.median_ratio if math.isfinite(s.median_ratio) else None, "holds": s.holds}
+            for s in summarize(rows)]
+
+
+def summary(study: Study, cells: list[Cell], done: dict, rows: list[dict]) -> dict:
+    """summary.json: the study, how many cells are finished, slopes and prediction verdicts (no timings)."""
+    return {
+        "study": study.name, "description": study.description, "warpis_version": _version(),
+        "seed": study.seed, "trials": study.trials, "n": study.n, "predictions": study.predictions,
+        "scenes": [{"scene": s.name, "source": s.source, "receivers": s.receivers,
+                    "grid": list(s.scene.receivers.grid_shape) if _is_grid(s) else None} for s in study.scenes],
+        "estimators": [e.spec for e in study.estimators],
+        "cells": {"total": len(cells), "finished": sum(c.key in done for c in cells)},
+        "complete": all(c.key in done for c in cells),
+        "slopes": slopes(rows, study),
+        "forms": form_summaries(rows) if study.predictions else [],
+    }
+
+
+def _is_grid(s: StudyScene) -> bool:
+    return s.scene.receivers.grid_shape is not None
+
+
+# --------------------------------------------------------------------------- running
+
+
+@dataclass
+class StudyRun:
+    """What a run did and wrote."""
+
+    out: Path
+    cells: int
+    skipped: int
+    computed: int
+    dropped: int
+    rows: list[dict] = field(default_factory=list)
+    figures: list[Path] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | None = None,
+              log: Callable[[str], None] | None = None) -> StudyRun:
+    """Run every unfinished cell of ``study`` into ``out``; then figures and report.md.
+
+    ``progress(done, total)`` counts the cells this run computes; ``log`` receives one-line
+    notes (cells skipped, rows dropped) as they happen.
+    """
+    log = log or (lambda line: None)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise WarpisError(f"{out}: the output must be a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    cells = study.cells()
+    previous, note = read_rows(out / "results.csv")
+    if note:
+        log(note)
+    done = {c.key: previous[c.key] for c in cells if _finished(previous.get(c.key), c)}
+    dropped = len(set(previous) - set(done))
+    todo = [c for c in cells if c.key not in done]
+    if done:
+        log(f"skipping {len(done)} of {len(cells)} cells already finished in {out / 'results.csv'}")
+    if dropped:
+        log(f"dropping the rows of {dropped} cell(s) no longer in the study (or changed)")
+    write_results(out, study, cells, done)
+    if progress is not None:
+        progress(0, len(todo))
+    caches = _Caches()
+    for i, cell in enumerate(todo):
+        done[cell.key] = compute_cell(study, cell, caches)
+        write_results(out, study, cells, done)
+        if progress is not None:
+            progress(i + 1, len(todo))
+    rows = [typed_row(r) for c in cells for r in done[c.key]]
+    run = StudyRun(out, len(cells), len(cells) - len(todo), len(todo), dropped, rows)
+    run.figures, run.notes = figures(study, rows, out / "figures")
+    _replace(out / "report.md", report(study, rows, run))
+    return run
+
+
+# --------------------------------------------------------------------------- figures and report
+
+FIGURE_PREFIXES = ("convergence-", "variance-map-", "variance-ratio-", "calibration.")
+
+
+def _index(rows: list[dict]) -> dict[tuple, dict]:
+    return {(r["scene"], r["receiver"], r["estimator"], r["n"]): r for r in rows}
+
+
+def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], list[str]]:
+    """Every figure the study's ``outputs`` ask for (PNG and PDF) → (paths, notes for the report)."""
+    from . import plots
+
+    paths: list[Path] = []
+    notes: list[str] = []
+    if fig_dir.is_dir():  # figures of an earlier version of the study would mislead
+        for old in fig_dir.iterdir():
+            if old.suffix in (".png", ".pdf") and old.name.startswith(FIGURE_PREFIXES):
+                old.unlink()
+    if not study.outputs:
+        return paths, notes
+    at = _index(rows)
+    fits = {(f["scene"], f["receiver"], f["estimator"]): f for f in slopes(rows, study)}
+    for s in study.scenes:
+        slug = plots._slug(s.name)
+        if "convergence" in study.outputs:
+            shown = s.receivers[:MAX_CONVERGENCE_RECEIVERS]
+            if len(s.receivers) > len(shown):
+                notes.append(f"{s.name}: convergence figures for the first {len(shown)} of its "
+                             f"{len(s.receivers)} receivers")
+            for r in shown:
+                series = []
+                for est in study.estimators:
+                    cells = [at[k] for k in ((s.name, r, est.spec, n) for n in sorted(study.n)) if k in at]
+                    if not cells:
+                        continue
+                    fit = fits.get((s.name, r, est.spec))
+                    series.append({
+                        "label": est.spec, "n": [c["n"] for c in cells], "variance": [c["variance"] for c in cells],
+                        "lo": [c["variance_lo"] for c in cells], "hi": [c["variance_hi"] for c in cells],
+                        "prediction": [c["predictions"].get("exact") for c in cells] if study.predictions else None,
+                        "slope": (fit["slope"], fit["slope_lo"], fit["slope_hi"])
+                        if fit and fit["slope"] is not None else None,
+                    })
+                made = plots.slope_convergence_plot(
+                    series, f"{s.name}, receiver {r}: variance against N, {study.trials} trials per point"
+                    + (" (dashed: exact prediction)" if study.predictions else ""),
+                    fig_dir, f"convergence-{slug}-r{r}")
+                if not made and series:
+                    notes.append(f"{s.name}, receiver {r}: zero variance under every estimator; no convergence figure")
+                paths += made
+        if "maps" in study.outputs and _is_grid(s):
+            rows_, cols_ = s.scene.receivers.grid_shape
+            grids = {}
+            for est in study.estimators:
+                for n in study.n:
+                    g = np.full(rows_ * cols_, np.nan)
+                    for r in s.receivers:
+                        c = at.get((s.name, r, est.spec, n))
+                        if c is not None:
+                            g[r] = c["variance"]
+                    grids[est.spec, n] = g.reshape(rows_, cols_)
+            for n in sorted(study.n):
+                paths += plots.variance_map_plot(
+                    [(est.spec, grids[est.spec, n]) for est in study.estimators],
+                    f"{s.name}: variance over the receiver grid, N = {n} (shared log scale)",
+                    fig_dir, f"variance-map-{slug}-n{n}")
+            if len(study.estimators) >= 2:
+                a, b = study.estimators[0].spec, study.estimators[1].spec
+                with np.errstate(all="ignore"):
+                    ratio = [(f"N = {n}", grids[a, n] / grids[b, n]) for n in sorted(study.n)]
+                paths += plots.ratio_map_plot(ratio, f"{s.name}: variance of {a} / variance of {b}", fig_dir,
+                                              f"variance-ratio-{slug}")
+    if "calibration" in study.outputs and study.predictions:
+        paths += plots.calibration_plot(rows, fig_dir, stem="calibration")
+    return paths, notes
+
+
+def _g(x: float | None) -> str:
+    return "" if x is None else f"{x:.4g}"
+
+
+def report(study: Study, rows: list[dict], run: StudyRun) -> str:
+    """report.md: the study, the slopes, the prediction verdicts, the figures and a row per cell."""
+    seconds = sum({r["cell"]: r["seconds"] or 0.0 for r in rows}.values())
+    lines = [f"# warpis study: {study.name}", ""]
+    if study.description:
+        lines += [study.description, ""]
+    lines += [
+        f"From `{study.source}`: {len(study.scenes)} scene(s), {len(study.estimators)} estimator(s), "
+        f"N = {', '.join(map(str, study.n))}, {study.trials} trials per cell, seed {study.seed}, predictions "
+        f"{'on' if study.predictions else 'off'}; {run.cells} cells, {len(rows)} rows (one per receiver × cell), "
+        f"{seconds:.0f} s of cell time as recorded in `results.csv`, warpis {_version()}.",
+        "",
+        "Files: [`results.csv`](results.csv) (one row per receiver × cell), [`summary.json`](summary.json), "
+        "[`figures/`](figures/).",
+        "",
+        "| scene | source | receivers |", "| --- | --- | --- |",
+    ]
+    for s in study.scenes:
+        grid = f" (a {s.scene.receivers.grid_shape[0]} × {s.scene.receivers.grid_shape[1]} grid)" if _is_grid(s) else ""
+        shown = ", ".join(map(str, s.receivers)) if len(s.receivers) <= 16 else f"{len(s.receivers)} receivers"
+        lines.append(f"| {s.name} | `{s.source}` | {shown}{grid} |")
+
+    lines += ["", "## Convergence rates", "",
+              "Slope of log variance against log N per estimator and receiver, fitted by weighted least squares "
+              "(weights from the variance intervals), with its 95% interval.  *Expected* is what theory leads one "
+              "to expect, not a test: −1 for independent and antithetic patterns (IS, MIS, mixture, biased); about "
+              "−2 for jittered patterns on smooth 2D integrands and about −1.5 where the integrand has edges "
+              "(shadow boundaries, light silhouettes under BSDF sampling).  Receivers whose variance is zero "
+              "(an umbra) have no slope.", "",
+              "| scene | receiver | estimator | slope | 95% interval | expected |", "| --- | --- | --- | --- | --- | --- |"]
+    ests = {e.spec: e for e in study.estimators}
+    for f in slopes(rows, study):
+        if f["slope"] is None:
+            continue
+        lines.append(f"| {f['scene']} | {f['receiver']} | `{f['estimator']}` | {f['slope']:.2f} | "
+                     f"[{f['slope_lo']:.2f}, {f['slope_hi']:.2f}] | {expected_text(ests[f['estimator']])} |")
+
+    if study.predictions:
+        lines += ["", "## Predictions", "",
+                  "A form is *inside* a cell when |s² − V| ≤ 1.96·√(se(s²)² + se(V)²) (a bound: when it is not below "
+                  "the interval); it *holds* when ≥ 80% of its cells are inside and the median measured/predicted is "
+                  "within 10% of 1 (a bound: on every cell).", "",
+                  "| form | verdict | kind | inside / cells | median measured/predicted |",
+                  "| --- | --- | --- | --- | --- |"]
+        for f in form_summaries(rows):
+            ratio = "" if f["median_ratio"] is None else f"{f['median_ratio']:.3g}"
+            lines.append(f"| {f['form']} | {'holds' if f['holds'] else '**fails**'} | {f['kind']} | "
+                         f"{f['inside']}/{f['cells']} | {ratio} |")
+
+    lines += ["", "## Figures", ""]
+    if not run.figures:
+        lines.append("None (the study's `outputs` asked for none, or nothing had a variance to draw).")
+    for note in run.notes:
+        lines.append(f"- {note}")
+    if run.notes:
+        lines.append("")
+    for path in run.figures:
+        if path.suffix != ".png":
+            continue
+        rel = f"figures/{path.name}"
+        lines += [f"### {path.stem}", "", f"![{path.stem}]({rel})", "", f"[PDF](figures/{path.stem}.pdf)", ""]
+
+    lines += ["", "## Cells", "",
+              "| scene | receiver | estimator | N | mean | reference | variance | 95% interval | exact prediction "
+              "| measured/exact |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        exact = r["predictions"].get("exact")
+        ratio = f"{r['variance'] / exact:.3g}" if exact else ""
+        lines.append(f"| {r['scene']} | {r['receiver']} | `{r['estimator']}` | {r['n']} | {_g(r['mean'])} | "
+                     f"{_g(r['reference'])} | {_g(r['variance'])} | [{_g(r['variance_lo'])}, {_g(r['variance_hi'])}] "
+                     f"| {_g(exact)} | {ratio} |")
+    return "\n".join(lines) + "\n"
