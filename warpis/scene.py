@@ -157,9 +157,17 @@ class Scene:
 # --------------------------------------------------------------------------- bundled
 
 
+def _bundled_root():
+    """The installed ``warpis.meshes`` package, or ``meshes/`` beside a source checkout."""
+    try:
+        return resources.files("warpis.meshes")
+    except ModuleNotFoundError:  # running from a checkout that was never pip-installed
+        return Path(__file__).resolve().parent.parent / "meshes"
+
+
 def bundled_scenes() -> list[str]:
     """Names of the scenes shipped in ``meshes/``."""
-    root = resources.files("warpis.meshes")
+    root = _bundled_root()
     return sorted(p.name for p in root.iterdir() if p.is_dir() and (p / "scene.toml").is_file())
 
 
@@ -171,7 +179,7 @@ def resolve_scene_path(name_or_path: str | Path) -> Path:
         return candidate
     if candidate.is_dir() and (candidate / "scene.toml").is_file():
         return candidate / "scene.toml"
-    bundled = resources.files("warpis.meshes") / text / "scene.toml"
+    bundled = _bundled_root() / text / "scene.toml"
     if "/" not in text and bundled.is_file():
         return Path(str(bundled))
     names = ", ".join(bundled_scenes())
