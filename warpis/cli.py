@@ -317,7 +317,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--n", help="comma-separated sample counts (default 4,16,64,256,1024)")
     c.add_argument("--trials", type=_positive, default=400, help="trials per cell (default 400)")
     c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    c.add_argument("--receivers", type=_receiver_list, help="comma-separated receiver indices (default: all)")
+    c.add_argument("--receivers", type=_receiver_list,
+                   help="comma-separated receiver indices (default: all, or 8 spread through the list when more)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
     c.add_argument("--out", help="directory for verify.json, verify.md and figures")
     c.set_defaults(func=cmd_verify)

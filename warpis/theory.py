@@ -45,7 +45,7 @@ from .techniques import TECHNIQUES, LightTable, light_table, sample_technique, t
 REL_TOL = 0.01
 REPLICAS = 8
 MIN_POINTS = 1 << 17  # per technique and block layout, over all replicas
-MAX_POINTS = 1 << 21  # per technique and block layout, over all replicas
+MAX_POINTS = 1 << 20  # per technique and block layout, over all replicas
 SEED = 0x7E0
 
 

@@ -40,6 +40,17 @@ def default_techniques(scene: Scene) -> tuple[str, str]:
     return ("light-solid-angle", "phong") if glossy else ("light-area", "cosine")
 
 
+DEFAULT_RECEIVERS = 8
+
+
+def default_receivers(scene: Scene) -> list[int]:
+    """All receivers, or ``DEFAULT_RECEIVERS`` of them evenly spread through the list."""
+    count = len(scene.receivers)
+    if count <= DEFAULT_RECEIVERS:
+        return list(range(count))
+    return sorted({int(round(i)) for i in np.linspace(0, count - 1, DEFAULT_RECEIVERS)})
+
+
 def default_estimators(techniques: Sequence[str]) -> list[Estimator]:
     """Every estimator the technique set allows: IS per technique under each pattern, the
     biased estimator per technique, mixture, balance under each pattern, power."""
@@ -99,7 +110,7 @@ def verify(
             est.check_n(n)
     if trials < 4:
         raise WarpisError(f"--trials must be at least 4 to give a variance interval (got {trials})")
-    rx = select_receivers(scene, receivers)
+    rx = select_receivers(scene, receivers if receivers is not None else default_receivers(scene))
     start = time.perf_counter()
     refs = {r.index: r for r in reference(scene, rx)}
     result = VerifyResult(scene.name, trials, seed, techs)
