@@ -137,8 +137,9 @@ def slope_convergence_plot(series: Sequence[dict], title: str, out: Path, stem: 
     ax.set_xlabel("N (samples per estimate)")
     ax.set_ylabel("variance of one estimate")
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=6, ncol=1 if drawn <= 6 else 2, title="measured, 95% intervals; fitted slope [95%]",
-              title_fontsize=6)
+    ax.legend(fontsize=6.5, ncol=1 if drawn <= 4 else 2, loc="upper center", bbox_to_anchor=(0.5, -0.12),
+              title="markers: measured with 95% intervals; slope of the weighted log-log fit [95% interval]",
+              title_fontsize=6.5, frameon=False)
     return _save(fig, out, stem)
 
 

@@ -79,10 +79,10 @@ DEMO = {
     "name": "demo",
     "description": "Ten estimators of direct illumination on occluded-quad: lit, penumbra and umbra receivers.",
     "seed": 1,
-    "trials": 6000,
+    "trials": 20000,
     "n": [4, 16, 64, 256],
     "scenes": ["occluded-quad"],
-    "estimators": list(DEMO_ESTIMATORS.values()),
+    "estimators": dict(DEMO_ESTIMATORS),
 }
 
 
@@ -134,6 +134,12 @@ class Study:
     threads: int | None = None
     description: str = ""
     source: str = ""  # the study file, or a word for a built-in study
+    labels: dict[str, str] = field(default_factory=dict)  # spec → the name the study gives it (figures, report)
+
+    def label(self, est: Estimator) -> str:
+        """``name (spec)`` for a named estimator, else its spec."""
+        name = self.labels.get(est.spec, est.spec)
+        return est.spec if name == est.spec else f"{name} ({est.spec})"
 
     def cells(self) -> list[Cell]:
         """Every cell, in the canonical order: scenes, then estimators, then N, as listed."""
@@ -209,7 +215,14 @@ def study_from_dict(table: dict[str, Any], where: str, base: Path | None, thread
     if min(n_values) < 1:
         raise bad(f"n takes positive sample counts, got {min(n_values)}")
 
-    specs = _string_list(table["estimators"], "estimators", bad)
+    named = table["estimators"]
+    if isinstance(named, dict):  # label → spec, in the file's order
+        if not named or not all(isinstance(v, str) for v in named.values()):
+            raise bad(f"estimators must be a non-empty list of specs or a table label → spec, got {named!r}")
+        specs, names = list(named.values()), list(named)
+    else:
+        specs = _string_list(named, "estimators", bad)
+        names = [None] * len(specs)
     estimators = []
     for spec in specs:
         try:
@@ -217,6 +230,7 @@ def study_from_dict(table: dict[str, Any], where: str, base: Path | None, thread
         except WarpisError as exc:
             raise bad(f"estimators: {exc}") from None
     _no_duplicates([e.spec for e in estimators], "estimators", bad)
+    labels = {e.spec: name or e.spec for e, name in zip(estimators, names)}
     for est in estimators:
         for n in n_values:
             try:
@@ -267,7 +281,7 @@ def study_from_dict(table: dict[str, Any], where: str, base: Path | None, thread
 
     return Study(name=name, seed=seed, trials=trials, n=n_values, scenes=scenes, estimators=estimators,
                  predictions=predictions, outputs=tuple(o for o in OUTPUTS if o in outputs),
-                 threads=threads or file_threads, description=description, source=where)
+                 threads=threads or file_threads, description=description, source=where, labels=labels)
 
 
 def demo_study(threads: int | None = None) -> Study:
@@ -466,10 +480,18 @@ def csv_text(cells: list[Cell], done: dict[str, list[list[str]]]) -> str:
     return buf.getvalue()
 
 
-def write_results(out: Path, study: Study, cells: list[Cell], done: dict[str, list[list[str]]]) -> None:
-    """results.csv, then summary.json, each replaced atomically."""
+def write_results(out: Path, study: Study, cells: list[Cell], done: dict[str, list[list[str]]],
+                  typed: dict[str, list[dict]] | None = None) -> None:
+    """results.csv, then summary.json, each replaced atomically.
+
+    ``typed`` caches :func:`typed_row` of each finished cell's rows (filled as needed).
+    """
+    typed = {} if typed is None else typed
     _replace(out / "results.csv", csv_text(cells, done))
-    rows = [typed_row(r) for c in cells if c.key in done for r in done[c.key]]
+    for c in cells:
+        if c.key in done and c.key not in typed:
+            typed[c.key] = [typed_row(r) for r in done[c.key]]
+    rows = [r for c in cells if c.key in done for r in typed[c.key]]
     _replace(out / "summary.json", json.dumps(summary(study, cells, done, rows), indent=1) + "\n")
 
 
@@ -539,6 +561,7 @@ def summary(study: Study, cells: list[Cell], done: dict, rows: list[dict]) -> di
         "scenes": [{"scene": s.name, "source": s.source, "receivers": s.receivers,
                     "grid": list(s.scene.receivers.grid_shape) if _is_grid(s) else None} for s in study.scenes],
         "estimators": [e.spec for e in study.estimators],
+        "labels": {e.spec: study.labels.get(e.spec, e.spec) for e in study.estimators},
         "cells": {"total": len(cells), "finished": sum(c.key in done for c in cells)},
         "complete": all(c.key in done for c in cells),
         "slopes": slopes(rows, study),
@@ -590,16 +613,17 @@ def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | No
         log(f"skipping {len(done)} of {len(cells)} cells already finished in {out / 'results.csv'}")
     if dropped:
         log(f"dropping the rows of {dropped} cell(s) no longer in the study (or changed)")
-    write_results(out, study, cells, done)
+    typed: dict[str, list[dict]] = {}
+    write_results(out, study, cells, done, typed)
     if progress is not None:
         progress(0, len(todo))
     caches = _Caches()
     for i, cell in enumerate(todo):
         done[cell.key] = compute_cell(study, cell, caches)
-        write_results(out, study, cells, done)
+        write_results(out, study, cells, done, typed)
         if progress is not None:
             progress(i + 1, len(todo))
-    rows = [typed_row(r) for c in cells for r in done[c.key]]
+    rows = [r for c in cells for r in typed[c.key]]
     run = StudyRun(out, len(cells), len(cells) - len(todo), len(todo), dropped, rows)
     run.figures, run.notes = figures(study, rows, out / "figures")
     _replace(out / "report.md", report(study, rows, run))
@@ -644,7 +668,8 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
                         continue
                     fit = fits.get((s.name, r, est.spec))
                     series.append({
-                        "label": est.spec, "n": [c["n"] for c in cells], "variance": [c["variance"] for c in cells],
+                        "label": study.label(est), "n": [c["n"] for c in cells],
+                        "variance": [c["variance"] for c in cells],
                         "lo": [c["variance_lo"] for c in cells], "hi": [c["variance_hi"] for c in cells],
                         "prediction": [c["predictions"].get("exact") for c in cells] if study.predictions else None,
                         "slope": (fit["slope"], fit["slope_lo"], fit["slope_hi"])
@@ -670,18 +695,24 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
                     grids[est.spec, n] = g.reshape(rows_, cols_)
             for n in sorted(study.n):
                 paths += plots.variance_map_plot(
-                    [(est.spec, grids[est.spec, n]) for est in study.estimators],
+                    [(study.label(est), grids[est.spec, n]) for est in study.estimators],
                     f"{s.name}: variance over the receiver grid, N = {n} (shared log scale)",
                     fig_dir, f"variance-map-{slug}-n{n}")
             if len(study.estimators) >= 2:
-                a, b = study.estimators[0].spec, study.estimators[1].spec
+                ea, eb = study.estimators[0], study.estimators[1]
+                a, b = ea.spec, eb.spec
                 with np.errstate(all="ignore"):
                     ratio = [(f"N = {n}", grids[a, n] / grids[b, n]) for n in sorted(study.n)]
-                paths += plots.ratio_map_plot(ratio, f"{s.name}: variance of {a} / variance of {b}", fig_dir,
-                                              f"variance-ratio-{slug}")
+                paths += plots.ratio_map_plot(ratio, f"{s.name}: variance of {study.label(ea)} / variance of "
+                                                     f"{study.label(eb)}", fig_dir, f"variance-ratio-{slug}")
     if "calibration" in study.outputs and study.predictions:
         paths += plots.calibration_plot(rows, fig_dir, stem="calibration")
     return paths, notes
+
+
+def _est(study: Study, spec: str) -> str:
+    name = study.labels.get(spec, spec)
+    return f"`{spec}`" if name == spec else f"{name} (`{spec}`)"
 
 
 def _g(x: float | None) -> str:
@@ -706,7 +737,9 @@ def report(study: Study, rows: list[dict], run: StudyRun) -> str:
         "| scene | source | receivers |", "| --- | --- | --- |",
     ]
     for s in study.scenes:
-        grid = f" (a {s.scene.receivers.grid_shape[0]} × {s.scene.receivers.grid_shape[1]} grid)" if _is_grid(s) else ""
+        grid = ""
+        if _is_grid(s):
+            grid = f" (a {s.scene.receivers.grid_shape[0]} × {s.scene.receivers.grid_shape[1]} grid)"
         shown = ", ".join(map(str, s.receivers)) if len(s.receivers) <= 16 else f"{len(s.receivers)} receivers"
         lines.append(f"| {s.name} | `{s.source}` | {shown}{grid} |")
 
@@ -717,19 +750,20 @@ def report(study: Study, rows: list[dict], run: StudyRun) -> str:
               "−2 for jittered patterns on smooth 2D integrands and about −1.5 where the integrand has edges "
               "(shadow boundaries, light silhouettes under BSDF sampling).  Receivers whose variance is zero "
               "(an umbra) have no slope.", "",
-              "| scene | receiver | estimator | slope | 95% interval | expected |", "| --- | --- | --- | --- | --- | --- |"]
+              "| scene | receiver | estimator | slope | 95% interval | expected |",
+              "| --- | --- | --- | --- | --- | --- |"]
     ests = {e.spec: e for e in study.estimators}
     for f in slopes(rows, study):
         if f["slope"] is None:
             continue
-        lines.append(f"| {f['scene']} | {f['receiver']} | `{f['estimator']}` | {f['slope']:.2f} | "
+        lines.append(f"| {f['scene']} | {f['receiver']} | {_est(study, f['estimator'])} | {f['slope']:.2f} | "
                      f"[{f['slope_lo']:.2f}, {f['slope_hi']:.2f}] | {expected_text(ests[f['estimator']])} |")
 
     if study.predictions:
         lines += ["", "## Predictions", "",
-                  "A form is *inside* a cell when |s² − V| ≤ 1.96·√(se(s²)² + se(V)²) (a bound: when it is not below "
-                  "the interval); it *holds* when ≥ 80% of its cells are inside and the median measured/predicted is "
-                  "within 10% of 1 (a bound: on every cell).", "",
+                  "A form is *inside* a cell when |s² − V| ≤ 1.96·√(se(s²)² + se(V)²) (a bound: when it is "
+                  "not below the interval); it *holds* when ≥ 80% of its cells are inside and the median "
+                  "measured/predicted is within 10% of 1 (a bound: on every cell).", "",
                   "| form | verdict | kind | inside / cells | median measured/predicted |",
                   "| --- | --- | --- | --- | --- |"]
         for f in form_summaries(rows):
@@ -756,7 +790,7 @@ def report(study: Study, rows: list[dict], run: StudyRun) -> str:
     for r in rows:
         exact = r["predictions"].get("exact")
         ratio = f"{r['variance'] / exact:.3g}" if exact else ""
-        lines.append(f"| {r['scene']} | {r['receiver']} | `{r['estimator']}` | {r['n']} | {_g(r['mean'])} | "
+        lines.append(f"| {r['scene']} | {r['receiver']} | {_est(study, r['estimator'])} | {r['n']} | {_g(r['mean'])} | "
                      f"{_g(r['reference'])} | {_g(r['variance'])} | [{_g(r['variance_lo'])}, {_g(r['variance_hi'])}] "
                      f"| {_g(exact)} | {ratio} |")
     return "\n".join(lines) + "\n"
