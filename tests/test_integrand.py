@@ -11,7 +11,6 @@ radiance 1.  Everything here is deterministic: no test can fail by chance.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -22,22 +21,12 @@ import trimesh
 from warpis.integrand import evaluate_integrand
 from warpis.scene import load_scene
 from warpis.techniques import sample_directions
+from conftest import toml_value
 
 # --------------------------------------------------------------------------- scene files
 
 
-def _toml(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float, np.integer, np.floating)):
-        return repr(float(value)) if isinstance(value, (float, np.floating)) else str(int(value))
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(_toml(v) for v in np.asarray(value, dtype=object).tolist()) + "]"
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {_toml(v)}" for k, v in value.items()) + " }"
-    raise TypeError(value)
+_toml = toml_value  # the shared TOML writer of conftest.py
 
 
 def _write_scene(directory: Path, meshes: list[tuple], receivers, material: dict | None = None) -> Path:

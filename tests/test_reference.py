@@ -38,6 +38,7 @@ from warpis.engine import run_trials
 from warpis.integrand import evaluate_integrand
 from warpis.reference import reference
 from warpis.scene import load_scene
+from conftest import toml_value
 
 TECHNIQUES = ("uniform", "cosine", "light-area", "light-power", "light-solid-angle")
 N, TRIALS = 1024, 1024
@@ -46,20 +47,7 @@ Z_MAX = 4.0
 # --------------------------------------------------------------------------- scene files
 
 
-def _toml(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(_toml(v) for v in np.asarray(value, dtype=object).tolist()) + "]"
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {_toml(v)}" for k, v in value.items()) + " }"
-    raise TypeError(value)
+_toml = toml_value  # the shared TOML writer of conftest.py
 
 
 def _write_scene(directory: Path, meshes: list[tuple], receivers: dict, material: dict | None = None) -> Path:

@@ -44,7 +44,6 @@ receiver that no emitter faces produces only invalid samples and estimates 0.
 
 from __future__ import annotations
 
-import json
 import math
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -58,6 +57,7 @@ import warp as wp
 from warpis.engine import run_trials
 from warpis.integrand import evaluate_integrand
 from warpis.scene import load_scene
+from conftest import toml_value
 from warpis.stats import chi2_sf, sidak_threshold
 from warpis.techniques import direction_pdf, light_table, sample_directions
 from warpis.testing import ChiSquareTest, orthonormal_frame
@@ -70,18 +70,7 @@ BITE_P = 1e-30
 # --------------------------------------------------------------------------- scene files
 
 
-def _toml(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (float, np.floating)):
-        return repr(float(value))
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, str):
-        return json.dumps(value)
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(_toml(v) for v in np.asarray(value, dtype=object).tolist()) + "]"
-    raise TypeError(value)
+_toml = toml_value  # the shared TOML writer of conftest.py
 
 
 def _write_scene(directory: Path, meshes: list[tuple], points, normals) -> Path:

@@ -155,23 +155,7 @@ def variance_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out:
     if positive.size == 0:
         return []
     norm = LogNorm(vmin=float(positive.min()), vmax=float(max(positive.max(), positive.min() * 1.0001)))
-    cols = min(4, len(panels))
-    nrows = (len(panels) + cols - 1) // cols
-    fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 3.0 * nrows), squeeze=False)
-    cmap = plt.get_cmap("viridis").copy()
-    cmap.set_bad("0.75")
-    image = None
-    for ax, (label, grid) in zip(axes.flat, panels):
-        shown = np.ma.masked_where(~(np.isfinite(grid) & (grid > 0)), grid)
-        image = ax.imshow(shown, origin="lower", cmap=cmap, norm=norm, interpolation="nearest", aspect="auto")
-        ax.set_title(label, fontsize=8)
-        ax.set_xticks([])
-        ax.set_yticks([])
-    for ax in list(axes.flat)[len(panels):]:
-        ax.axis("off")
-    fig.suptitle(title, fontsize=10)
-    fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="variance (grey: zero or not measured)")
-    return _save(fig, out, stem)
+    return _map_panels(panels, title, "viridis", norm, "variance (grey: zero or not measured)", out, stem)
 
 
 def ratio_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str) -> list[Path]:
@@ -187,20 +171,26 @@ def ratio_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Pa
     span = float(np.exp(np.max(np.abs(np.log(finite)))))
     span = max(span, 1.01)
     norm = LogNorm(vmin=1 / span, vmax=span)
+    return _map_panels(panels, title, "RdBu_r", norm, "variance ratio (grey: undefined)", out, stem)
+
+
+def _map_panels(panels: Sequence[tuple[str, np.ndarray]], title: str, cmap_name: str, norm, label: str, out: Path,
+                stem: str) -> list[Path]:
+    """One image per panel on a shared colour scale; masked (grey) where not positive."""
     cols = min(4, len(panels))
     nrows = (len(panels) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 3.0 * nrows), squeeze=False)
-    cmap = plt.get_cmap("RdBu_r").copy()
+    cmap = plt.get_cmap(cmap_name).copy()
     cmap.set_bad("0.75")
     image = None
-    for ax, (label, grid) in zip(axes.flat, panels):
+    for ax, (name, grid) in zip(axes.flat, panels):
         shown = np.ma.masked_where(~(np.isfinite(grid) & (grid > 0)), grid)
         image = ax.imshow(shown, origin="lower", cmap=cmap, norm=norm, interpolation="nearest", aspect="auto")
-        ax.set_title(label, fontsize=8)
+        ax.set_title(name, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])
     for ax in list(axes.flat)[len(panels):]:
         ax.axis("off")
     fig.suptitle(title, fontsize=10)
-    fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="variance ratio (grey: undefined)")
+    fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label=label)
     return _save(fig, out, stem)

@@ -21,7 +21,7 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from .errors import WarpisError, fail
+from .errors import fail
 
 MATERIALS = {"irradiance": 0, "lambert": 1, "phong": 2}
 MATERIAL_KEYS = {

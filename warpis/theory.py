@@ -37,7 +37,7 @@ import warp as wp
 
 from .engine import default_threads
 from .estimators import Estimator, parse_estimator
-from .integrand import ShadingPoint, integrand, shading_point
+from .integrand import integrand, shading_point
 from .patterns import grid_shape
 from .scene import ReceiverData, Scene, SceneData
 from .techniques import TECHNIQUES, LightTable, light_table, sample_technique, technique_pdf
