@@ -38,7 +38,7 @@ from warpis.engine import run_trials
 from warpis.integrand import evaluate_integrand
 from warpis.reference import reference
 from warpis.scene import load_scene
-from conftest import toml_value
+from conftest import write_scene
 
 TECHNIQUES = ("uniform", "cosine", "light-area", "light-power", "light-solid-angle")
 N, TRIALS = 1024, 1024
@@ -47,28 +47,12 @@ Z_MAX = 4.0
 # --------------------------------------------------------------------------- scene files
 
 
-_toml = toml_value  # the shared TOML writer of conftest.py
-
-
 def _write_scene(directory: Path, meshes: list[tuple], receivers: dict, material: dict | None = None) -> Path:
-    """Write OBJ files and a scene TOML; return the TOML's path.
-
-    ``meshes``: (vertices (V, 3), faces (F, 3), emission) per mesh; ``receivers``: the
-    ``[receivers]`` table; ``material``: the ``[material]`` table (default irradiance).
-    """
-    directory.mkdir(parents=True, exist_ok=True)
-    lines = [f'name = "{directory.name}"', ""]
-    for i, (v, f, emission) in enumerate(meshes):
-        obj = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(v, float).tolist()]
-        obj += ["f " + " ".join(str(j + 1) for j in face) for face in np.asarray(f, int).tolist()]
-        (directory / f"mesh{i}.obj").write_text("\n".join(obj) + "\n")
-        lines += ["[[mesh]]", f'path = "mesh{i}.obj"']
-        lines += ([f"emission = {float(emission)!r}"] if emission else []) + [""]
-    lines += ["[receivers]"] + [f"{k} = {_toml(v)}" for k, v in receivers.items()] + [""]
-    lines += ["[material]"] + [f"{k} = {_toml(v)}" for k, v in (material or {"type": "irradiance"}).items()]
-    path = directory / "scene.toml"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    """``meshes``: (vertices (V, 3), faces (F, 3), emission) per mesh, written as OBJ files;
+    ``receivers`` and ``material`` (default irradiance) as tables.  Returns the TOML's path."""
+    entries = [{"path": f"mesh{i}.obj", "vertices": np.asarray(v, float), "faces": np.asarray(f, int),
+                **({"emission": float(e)} if e else {})} for i, (v, f, e) in enumerate(meshes)]
+    return write_scene(directory, entries, receivers, material or {"type": "irradiance"}, name=directory.name)
 
 
 def _unit(v) -> list[float]:

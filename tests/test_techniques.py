@@ -57,7 +57,7 @@ import warp as wp
 from warpis.engine import run_trials
 from warpis.integrand import evaluate_integrand
 from warpis.scene import load_scene
-from conftest import toml_value
+from conftest import write_scene
 from warpis.stats import chi2_sf, sidak_threshold
 from warpis.techniques import direction_pdf, light_table, sample_directions
 from warpis.testing import ChiSquareTest, orthonormal_frame
@@ -70,27 +70,15 @@ BITE_P = 1e-30
 # --------------------------------------------------------------------------- scene files
 
 
-_toml = toml_value  # the shared TOML writer of conftest.py
-
-
 def _write_scene(directory: Path, meshes: list[tuple], points, normals) -> Path:
     """OBJ files and a scene TOML (irradiance receivers); returns the TOML's path.
 
     ``meshes``: (vertices (V, 3), faces (F, 3), emission) per mesh.
     """
-    directory.mkdir(parents=True, exist_ok=True)
-    lines = [f'name = "{directory.name}"', ""]
-    for i, (v, f, emission) in enumerate(meshes):
-        obj = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(v, float).tolist()]
-        obj += ["f " + " ".join(str(j + 1) for j in face) for face in np.asarray(f, int).tolist()]
-        (directory / f"mesh{i}.obj").write_text("\n".join(obj) + "\n")
-        lines += ["[[mesh]]", f'path = "mesh{i}.obj"']
-        lines += ([f"emission = {float(emission)!r}"] if emission else []) + [""]
-    lines += ["[receivers]", f"points = {_toml(points)}", f"normals = {_toml(normals)}", "",
-              "[material]", 'type = "irradiance"', ""]
-    path = directory / "scene.toml"
-    path.write_text("\n".join(lines))
-    return path
+    entries = [{"path": f"mesh{i}.obj", "vertices": np.asarray(v, float), "faces": np.asarray(f, int),
+                **({"emission": float(e)} if e else {})} for i, (v, f, e) in enumerate(meshes)]
+    receivers = {"points": np.asarray(points, float), "normals": np.asarray(normals, float)}
+    return write_scene(directory, entries, receivers, {"type": "irradiance"}, name=directory.name)
 
 
 def _unit(v) -> np.ndarray:
