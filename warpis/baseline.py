@@ -39,6 +39,7 @@ from .errors import WarpisError
 from .estimators import parse_estimator
 from .patterns import grid_shape
 from .scene import MATERIALS, RAY_EPSILON, Scene
+from .testing import orthonormal_frame
 
 __all__ = ["BASELINE_ESTIMATORS", "BaselineScene", "baseline_scene", "baseline_trials"]
 
@@ -159,7 +160,7 @@ class _Receiver:
         axis = 2.0 * np.dot(n, v) * n - v
         return cls(p=rx.positions[r] + bs.ray_eps * n, n=n, material=int(rx.material[r]),
                    albedo=float(rx.albedo[r]), exponent=float(rx.exponent[r]),
-                   lobe_axis=axis / np.linalg.norm(axis), frame=_frame(n))
+                   lobe_axis=axis / np.linalg.norm(axis), frame=np.stack(orthonormal_frame(n)))
 
     def integrand(self, bs: BaselineScene, w: np.ndarray) -> np.ndarray:
         """f(ω) = Le · ρ · max(0, n·ω) for each row of w; one shadow ray where f can be > 0."""
@@ -180,16 +181,6 @@ class _Receiver:
             c = np.maximum(w @ self.lobe_axis, 0.0)
             return self.albedo * (self.exponent + 2.0) / (2.0 * math.pi) * c ** self.exponent * (c > 0.0)
         return np.ones(len(w))
-
-
-def _frame(n: np.ndarray) -> np.ndarray:
-    """The tangent frame of :func:`warpis.warps.frame_x` / ``frame_y`` (Duff et al. 2017)."""
-    sign = 1.0 if n[2] >= 0.0 else -1.0
-    a = -1.0 / (sign + n[2])
-    b = n[0] * n[1] * a
-    tx = np.array([1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]])
-    ty = np.array([b, sign + n[1] * n[1] * a, -n[1]])
-    return np.stack([tx, ty, n])
 
 
 # --------------------------------------------------------------------------- sampling

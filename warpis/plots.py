@@ -56,38 +56,18 @@ def calibration_plot(rows: Sequence[dict], out: Path, stem: str = "calibration")
 
 
 def convergence_plot(rows: Sequence[dict], receiver: int, out: Path, stem: str | None = None) -> list[Path]:
-    """Measured variance against N (log-log, 95% interval bars), exact predictions dashed."""
+    """verify's rows for one receiver → :func:`slope_convergence_plot` (exact predictions dashed)."""
     mine = [r for r in rows if r["receiver"] == receiver]
-    if not any(r["variance"] > 0 for r in mine):
-        return []  # an umbra receiver: every estimate is exactly 0
-    fig, ax = plt.subplots(figsize=(8, 5.5))
-    for i, est in enumerate(dict.fromkeys(r["estimator"] for r in mine)):
+    series = []
+    for est in dict.fromkeys(r["estimator"] for r in mine):
         cells = sorted((r for r in mine if r["estimator"] == est), key=lambda r: r["n"])
-        cells = [c for c in cells if c["variance"] > 0]
-        if not cells:
-            continue
-        n = np.array([c["n"] for c in cells], float)
-        v = np.array([c["variance"] for c in cells])
-        lo = np.array([c["variance_ci"][0] for c in cells])
-        hi = np.array([c["variance_ci"][1] for c in cells])
-        color = f"C{i % 10}"
-        style = "o-" if i < 10 else "s-"
-        ax.errorbar(n, v, yerr=[v - np.maximum(lo, v * 1e-3), hi - v], fmt=style, ms=3, lw=1, color=color,
-                    capsize=2, label=est)
-        pred = [c["predictions"].get("exact") for c in cells]
-        if all(p is not None and p > 0 for p in pred):
-            ax.plot(n, pred, "--", color=color, lw=0.8)
-    ax.set_xscale("log", base=2)
-    ax.set_yscale("log")
-    ax.set_xlabel("N (samples per estimate)")
-    ax.set_ylabel("variance of one estimate")
-    ax.set_title(f"receiver {receiver}: measured (markers, 95% intervals) and exact prediction (dashed)")
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=6, ncol=2)
-    return _save(fig, out, stem or f"variance-vs-n-receiver-{receiver}")
-
-
-# --------------------------------------------------------------------------- studies
+        series.append({
+            "label": est, "n": [c["n"] for c in cells], "variance": [c["variance"] for c in cells],
+            "lo": [c["variance_ci"][0] for c in cells], "hi": [c["variance_ci"][1] for c in cells],
+            "prediction": [c["predictions"].get("exact") for c in cells],
+        })
+    title = f"receiver {receiver}: measured (markers, 95% intervals) and exact prediction (dashed)"
+    return slope_convergence_plot(series, title, out, stem or f"variance-vs-n-receiver-{receiver}")
 
 
 def _slug(text: str) -> str:

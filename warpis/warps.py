@@ -17,27 +17,19 @@ PI64 = wp.constant(wp.float64(3.14159265358979323846))
 
 
 @wp.func
-def frame_x(n: wp.vec3) -> wp.vec3:
-    """First tangent of an orthonormal frame about unit ``n`` (Duff et al. 2017)."""
+def frame(n: wp.vec3):
+    """Two tangents completing an orthonormal frame about unit ``n`` (Duff et al. 2017)."""
     sign = wp.where(n[2] >= 0.0, 1.0, -1.0)
     a = -1.0 / (sign + n[2])
     b = n[0] * n[1] * a
-    return wp.vec3(1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0])
-
-
-@wp.func
-def frame_y(n: wp.vec3) -> wp.vec3:
-    """Second tangent of the frame of :func:`frame_x`."""
-    sign = wp.where(n[2] >= 0.0, 1.0, -1.0)
-    a = -1.0 / (sign + n[2])
-    b = n[0] * n[1] * a
-    return wp.vec3(b, sign + n[1] * n[1] * a, -n[1])
+    return wp.vec3(1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]), wp.vec3(b, sign + n[1] * n[1] * a, -n[1])
 
 
 @wp.func
 def to_world(local: wp.vec3, n: wp.vec3) -> wp.vec3:
     """A local direction (z along ``n``) expressed in world coordinates."""
-    return local[0] * frame_x(n) + local[1] * frame_y(n) + local[2] * n
+    t, b = frame(n)
+    return local[0] * t + local[1] * b + local[2] * n
 
 
 # --------------------------------------------------------------------------- hemisphere
