@@ -1,7 +1,7 @@
 """Shared fixtures and helpers: scene files written on the fly, bundled scenes loaded once.
 
 ``write_scene(directory, meshes=..., receivers=..., material=...)`` writes mesh files and
-a scene TOML (see DESIGN.md, "Scene files") and returns the TOML's path.  Every key of a
+a scene TOML (see README.md, "Scene files") and returns the TOML's path.  Every key of a
 mesh entry goes into its ``[[mesh]]`` table verbatim, except three that say what to
 write at ``path``: ``vertices`` and ``faces`` (geometry, written in the format of the
 path's suffix), or ``content`` (bytes or text, written as is).  Values are written as
@@ -217,6 +217,18 @@ class CliResult:
     @property
     def err_lines(self) -> list[str]:
         return self.err.splitlines()
+
+
+def one_error_line(result: CliResult) -> str:
+    """The single ``warpis: error:`` line of a failed run: exit 2, nothing on stdout, no
+    traceback, exactly one line on stderr."""
+    assert result.status == 2, (result.status, result.err)
+    assert result.out == ""
+    assert len(result.err_lines) == 1, result.err
+    assert "Traceback" not in result.err
+    line = result.err_lines[0]
+    assert line.startswith("warpis: error: "), line
+    return line
 
 
 def run_warpis(*args: str, timeout: float = 300) -> CliResult:

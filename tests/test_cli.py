@@ -13,20 +13,11 @@ import math
 
 import pytest
 from conftest import BUNDLED, run_warpis, write_scene
+from conftest import one_error_line as _one_error_line
 
 SUMMARY_KEYS = {"scene", "triangles", "emitter_triangles", "receivers", "emitter_area", "total_power"}
 ESTIMATE = ["estimate", "occluded-quad", "--estimator", "independent:single:light-area", "--n", "8",
             "--trials", "50", "--json"]
-
-
-def _one_error_line(result) -> str:
-    assert result.status == 2, (result.status, result.err)
-    assert result.out == ""
-    assert len(result.err_lines) == 1, result.err
-    assert "Traceback" not in result.err
-    line = result.err_lines[0]
-    assert line.startswith("warpis: error: "), line
-    return line
 
 
 def test_scenes_lists_the_bundled_scenes(cli, loaded_scenes):

@@ -82,7 +82,7 @@ def _unit(v) -> np.ndarray:
 
 def _shading_point(scene, r: int) -> np.ndarray:
     rx = scene.receivers
-    return rx.positions[r] + float(scene.data.ray_eps) * rx.normals[r]
+    return rx.positions[r]  # directions are from the receiver itself (integrand.py)
 
 
 # --------------------------------------------------------------------------- geometry

@@ -29,7 +29,7 @@ from conftest import BUNDLED, floor_entry, light_entry, quad, run_warpis, write_
 import warpis
 from warpis.errors import WarpisError
 from warpis.integrand import incident_radiance
-from warpis.scene import MATERIALS, RAY_EPSILON, SceneData, load_scene
+from warpis.scene import MATERIALS, SELF_HIT_SLAB, SceneData, load_scene
 
 MESHES = Path(str(resources.files("warpis.meshes")))
 
@@ -125,11 +125,25 @@ def test_warp_data_mirrors_numpy(bundled_scene):
     assert d.emitter_count == s.emitter_count
     np.testing.assert_allclose(d.total_area, s.total_emitter_area, rtol=1e-6)
     np.testing.assert_allclose(d.total_power, s.total_power, rtol=1e-6)
-    np.testing.assert_allclose(d.ray_eps, RAY_EPSILON * s.diagonal, rtol=1e-6)
     r = s.receiver_data
     np.testing.assert_allclose(r.position.numpy(), s.receivers.positions, atol=1e-6)
     np.testing.assert_allclose(r.normal.numpy(), s.receivers.normals, atol=1e-6)
     np.testing.assert_array_equal(r.material.numpy(), s.receivers.material)
+
+
+def test_self_hit_slab_follows_the_coordinates_around_each_receiver(bundled_scene):
+    """Each receiver's slab is SELF_HIT_SLAB × the largest coordinate magnitude of the
+    receiver and of the triangles whose bounds hold it (numpy over all triangles against
+    Warp's BVH query): local magnitudes only, no scene size."""
+    s = bundled_scene
+    tris = s.triangle_vertices()
+    lo, hi = tris.min(axis=1), tris.max(axis=1)
+    for r, x in enumerate(s.receivers.positions):
+        reach = np.abs(x).max() * 1e-6 + 1e-30
+        holds = np.all((lo <= x + reach) & (hi >= x - reach), axis=1)
+        scale = max(np.abs(x).max(), np.abs(tris[holds]).max() if holds.any() else 0.0)
+        np.testing.assert_allclose(s.slab[r], SELF_HIT_SLAB * scale, rtol=1e-6, err_msg=f"{s.name} receiver {r}")
+    np.testing.assert_array_equal(s.receiver_data.slab.numpy(), s.slab.astype(np.float32))
 
 
 def test_bundled_receivers_and_materials(bundled_scene):
@@ -625,10 +639,10 @@ def emitter_targets(scene: warpis.Scene, count: int, seed: int, mesh: int | None
 
 
 def shading_rays(scene: warpis.Scene, receiver: int, targets: np.ndarray):
-    """Rays from receiver's shading point x + ε n (ε = scene.data.ray_eps) to ``targets``,
+    """Rays from just above receiver x (its self-hit slab height δ along n) to ``targets``,
     rounded to float32 as the kernel sees them, so both casts get the same rays."""
     x, n = scene.receivers.positions[receiver], scene.receivers.normals[receiver]
-    origin = (x + float(scene.data.ray_eps) * n).astype(np.float32).astype(np.float64)
+    origin = (x + float(scene.slab[receiver]) * n).astype(np.float32).astype(np.float64)
     d = targets - origin
     d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32).astype(np.float64)
     return origin, d

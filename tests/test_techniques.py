@@ -53,12 +53,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import warp as wp
+from scipy.stats import chi2
 
 from warpis.engine import run_trials
 from warpis.integrand import evaluate_integrand
 from warpis.scene import load_scene
 from conftest import write_scene
-from warpis.stats import chi2_sf, sidak_threshold
+from warpis.stats import sidak_threshold
 from warpis.techniques import direction_pdf, light_table, sample_directions
 from warpis.testing import ChiSquareTest, orthonormal_frame
 from warpis.warps import square_to_spherical_triangle
@@ -118,7 +119,7 @@ def scenes(tmp_path_factory):
 
 def _shading_point(scene, r: int) -> np.ndarray:
     rx = scene.receivers
-    return rx.positions[r] + float(scene.data.ray_eps) * rx.normals[r]
+    return rx.positions[r]  # directions are from the receiver itself (integrand.py)
 
 
 def _lobe_axis(scene, r: int) -> np.ndarray:
@@ -439,6 +440,24 @@ def test_reported_pdf_is_direction_pdf(scenes, name, r, technique):
     assert np.allclose(np.linalg.norm(d[~invalid], axis=1), 1.0, atol=1e-6)
 
 
+@pytest.mark.parametrize("technique", ["light-solid-angle", "light-area"])
+def test_a_light_sample_that_reaches_the_light_has_a_pdf(scenes, technique):
+    """On veach-plates's tessellated spheres, every light sample whose ray reaches a
+    light (f > 0) reports a pdf > 0.  At a sphere's silhouette the ray enters through a
+    front face and leaves through a back face at almost the same distance; taking those
+    for one shared-edge crossing lost the front one (pdf 0 where f > 0: light-solid-angle
+    lost 80–160 samples per million at these receivers, a bias of up to 7e-5 of F, and
+    made MIS heavy-tailed).  Deterministic: 200,000 fixed samples per receiver, none may
+    be lost."""
+    scene = scenes["veach-plates"]
+    for r in (8, 9, 12):
+        u = np.random.default_rng(r).random((200_000, 2), dtype=np.float32)
+        d, p = sample_directions(scene, r, technique, u)
+        f = evaluate_integrand(scene, r, d)
+        lost = np.flatnonzero((f > 0) & (p == 0))
+        assert len(lost) == 0, f"receiver {r}: {len(lost)} samples reach a light but report pdf 0"
+
+
 def _crossings(p: np.ndarray, w: np.ndarray, tris: np.ndarray):
     """Möller–Trumbore in float64: distance t, |cos θ_y|, whether the front face is hit,
     and the emitter index, of every crossing of the ray (p, w) with ``tris``."""
@@ -635,7 +654,7 @@ def test_spherical_triangle_samples_inside_and_uniform(name):
     expected = SAMPLES * np.array([_solid_angle(*s) for s in subs]) / omega
     assert expected.sum() == pytest.approx(SAMPLES, rel=1e-6)
     stat = float(np.sum((observed - expected) ** 2 / expected))
-    p_value = float(chi2_sf(stat, 3))
+    p_value = float(chi2.sf(stat, 3))
     assert p_value >= THRESHOLD, f"{name}: observed {observed}, expected {expected.round(1)}, p = {p_value:.3g}"
 
 

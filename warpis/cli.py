@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, NoReturn
 
+from . import limits
 from .errors import WarpisError
 
 
@@ -24,28 +27,59 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(2)
 
 
-def _receiver_list(text: str) -> list[int]:
-    try:
-        out = [int(t) for t in text.split(",") if t.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--receivers takes comma-separated indices, got {text!r}") from None
-    if not out:
-        raise argparse.ArgumentTypeError("--receivers is empty")
+def _option_type(check: Callable[[str], Any]) -> Callable[[str], Any]:
+    """An argparse type from a limits check: its WarpisError becomes argparse's one line."""
+    def convert(text: str) -> Any:
+        try:
+            return check(text)
+        except WarpisError as exc:
+            raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
+    return convert
+
+
+def _indices(text: str) -> list[int]:
+    parts = [t.strip() for t in text.split(",") if t.strip()]
+    if not parts:
+        raise WarpisError("--receivers is empty")
+    out = [limits.count_text(t, "--receivers", minimum=-limits.MAX_COUNT) for t in parts]
+    negative = [i for i in out if i < 0]
+    if negative:
+        raise WarpisError(f"--receivers: receiver {negative[0]} does not exist (indices start at 0)")
     return out
 
 
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
+_receiver_list = _option_type(_indices)
+_positive = _option_type(lambda text: limits.count_text(text, "count"))
+_seed = _option_type(lambda text: limits.seed(limits.count_text(text, "--seed", minimum=0, maximum=2**63)))
+
+
+def _check_finite(data: Any, where: str = "output") -> None:
+    """Refuse to report a NaN or infinite number: it would be a wrong figure with exit 0."""
+    if isinstance(data, float) and not math.isfinite(data):
+        raise WarpisError(f"{where}: the computation gave {data} (a float32 overflow or a degenerate "
+                          "scene); nothing is reported")
+    if isinstance(data, dict):
+        for key, value in data.items():
+            _check_finite(value, f"{where}.{key}")
+    elif isinstance(data, (list, tuple)):
+        for i, value in enumerate(data):
+            _check_finite(value, f"{where}[{i}]")
 
 
 def _emit(data: Any, as_json: bool, text: str) -> None:
-    print(json.dumps(data, indent=2) if as_json else text)
+    _check_finite(data)
+    _print(json.dumps(data, indent=2, allow_nan=False) if as_json else text)
+
+
+def _print(text: str) -> None:
+    """Print and flush the results; a full or unwritable stdout is a one-line error."""
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        _silence_stdout()
+        raise WarpisError(f"standard output: cannot write: {exc.strerror}") from None
 
 
 def _load(args: argparse.Namespace):
@@ -106,34 +140,46 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_reference(args: argparse.Namespace) -> int:
-    from .reference import reference
+    from .limits import count_text
+    from .reference import DEFAULT_REL_ERROR, MAX_QUADRATURE_SAMPLES, check_rel_error, reference
 
+    rel_error = check_rel_error(args.rel_error, "--rel-error") if args.rel_error is not None else DEFAULT_REL_ERROR
+    samples = count_text(args.samples, "--samples") if args.samples is not None else MAX_QUADRATURE_SAMPLES
     scene = _load(args)
-    refs = reference(scene, args.receivers, samples=args.samples)
-    data = {"scene": scene.name, "receivers": [r.as_dict() for r in refs]}
-    lines = [f"{'receiver':>8} {'value':>14} {'stderr':>11}  method"]
+    with _progress(0, "samples") as bar:
+        bar.bar.unit_scale = True
+
+        def progress(done: int, total: int) -> None:
+            bar.bar.total = total
+            bar(done, total)
+
+        refs = reference(scene, args.receivers, samples=samples, rel_error=rel_error, progress=progress)
+    data = {"scene": scene.name, "rel_error": rel_error, "samples": samples, "receivers": [r.as_dict() for r in refs]}
+    lines = [f"{scene.name}: target stderr <= {rel_error:g} × |value| within {samples} samples per replica",
+             f"{'receiver':>8} {'value':>14} {'stderr':>11} {'relative':>9}  method"]
     for r in refs:
-        how = r.method if r.method == "closed-form" else f"{r.method} ({r.samples} samples)"
-        lines.append(f"{r.index:>8} {r.value:>14.8g} {r.stderr:>11.3g}  {how}")
+        rel = r.stderr / abs(r.value) if r.value else 0.0
+        how = r.method if r.method == "closed-form" else f"{r.method} {r.estimator} ({r.samples} samples)"
+        miss = "" if r.target_met is not False else "  MISSED TARGET"
+        lines.append(f"{r.index:>8} {r.value:>14.9g} {r.stderr:>11.3g} {rel:>9.2g}  {how}{miss}")
     _emit(data, args.json, "\n".join(lines))
     return 0
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from .engine import run_trials
+    from .engine import run_moments
     from .estimators import parse_estimator
     from .reference import reference
-    from .stats import variance_interval
 
     est = parse_estimator(args.estimator)
     est.check_n(args.n)
     if args.trials < 2:
         raise WarpisError(f"--trials must be at least 2 to measure a variance (got {args.trials})")
     scene = _load(args)
-    with _progress(args.trials, "trials") as bar:
-        values = run_trials(scene, est, args.n, args.trials, seed=args.seed, receivers=args.receivers,
-                            threads=args.threads, progress=bar)
-    stats = variance_interval(values)
+    with _progress(args.trials, "trials") as bar:  # running moments: memory flat in --trials
+        moments = run_moments(scene, est, args.n, args.trials, seed=args.seed, receivers=args.receivers,
+                              threads=args.threads, progress=bar)
+    stats = moments.interval()
     refs = reference(scene, args.receivers)
     rows = []
     for i, ref in enumerate(refs):
@@ -158,16 +204,16 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    import contextlib
 
-    from . import plots
+    from . import outdir
     from .estimators import parse_estimator
-    from .verify import DEFAULT_N, markdown, summary_lines, verify
+    from .verify import DEFAULT_N, summary_lines, verify, write_outputs
 
     techniques = tuple(args.techniques.split("+")) if args.techniques else None
     estimators = [parse_estimator(e) for e in args.estimators.split(",")] if args.estimators else None
     n_values = _int_list(args.n, "--n") if args.n else DEFAULT_N
-    out = Path(args.out) if args.out else None
+    out = outdir.out_option(args.out)
     if out is not None and out.exists() and not out.is_dir():
         raise WarpisError(f"{out}: --out must be a directory")
     if techniques:
@@ -181,14 +227,14 @@ def cmd_verify(args: argparse.Namespace) -> int:
             bar.bar.total = total
             bar(done, total)
 
-        result = verify(scene, techniques, estimators, n_values, args.trials, args.seed, args.receivers,
-                        args.threads, out, progress)
-    command = "warpis " + " ".join(sys.argv[1:]) if sys.argv[1:] else f"warpis verify {args.scene}"
-    if out is not None:
-        (out / "verify.md").write_text(markdown(result, command))
-        plots.calibration_plot(result.rows, out)
-        for r in sorted({row["receiver"] for row in result.rows}):
-            plots.convergence_plot(result.rows, r, out)
+        # One lock over verify.json, verify.md and the figures (verify() re-enters it); a folder
+        # it creates is removed again if verify() then refuses its arguments.
+        with outdir.locked(out) if out is not None else contextlib.nullcontext():
+            result = verify(scene, techniques, estimators, n_values, args.trials, args.seed, args.receivers,
+                            args.threads, out, progress)
+            if out is not None:
+                command = "warpis " + " ".join(sys.argv[1:]) if sys.argv[1:] else f"warpis verify {args.scene}"
+                write_outputs(out, result, command)
     lines = [f"{scene.name}: {len(result.rows)} cells, {result.trials} trials each, {result.seconds:.0f} s"]
     lines += summary_lines(result)
     if out is not None:
@@ -200,41 +246,47 @@ def cmd_verify(args: argparse.Namespace) -> int:
 def cmd_study(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from .outdir import out_option
     from .study import default_out, load_study
 
+    out = out_option(args.out)  # before the study is read: an empty --out is not "."
     study = load_study(Path(args.file), threads=args.threads)
-    return _run_study(study, Path(args.out) if args.out else default_out(study))
+    return _run_study(study, out if out is not None else default_out(study))
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
+    from .outdir import out_option
     from .study import default_out, demo_study
 
+    out = out_option(args.out)  # an empty --out is an error, not the default folder
     study = demo_study(threads=args.threads)
-    return _run_study(study, Path(args.out) if args.out else default_out(study))
+    return _run_study(study, out if out is not None else default_out(study))
 
 
 def _run_study(study, out) -> int:
     """Run a validated study into ``out`` with a bar of cells done and time left; say where it wrote."""
+    from .outdir import locked
     from .study import run_study
 
     if out.exists() and not out.is_dir():
         raise WarpisError(f"{out}: --out must be a directory")
-    cells = len(study.cells())
-    print(f"study {study.name}: {cells} cells ({len(study.scenes)} scene(s) × {len(study.estimators)} estimator(s) "
-          f"× {len(study.n)} N), {study.trials} trials each, into {out}", flush=True)
-    with _progress(0, "cells") as bar:
-        def progress(done: int, total: int) -> None:
-            bar.bar.total = total
-            bar.bar.refresh()
-            bar(done, total)
+    # Locked (run_study re-enters the lock) before anything is said: a folder in use or
+    # one that cannot be written fails at once, with only its one-line error.
+    with locked(out):
+        cells = len(study.cells())
+        print(f"study {study.name}: {cells} cells ({len(study.scenes)} scene(s) × {len(study.estimators)} "
+              f"estimator(s) × {len(study.n)} N), {study.trials} trials each, into {out}", flush=True)
+        with _progress(0, "cells") as bar:
+            def progress(done: int, total: int) -> None:
+                bar.bar.total = total
+                bar.bar.refresh()
+                bar(done, total)
 
-        def log(line: str) -> None:
-            bar.bar.write(line, file=sys.stdout)
-            sys.stdout.flush()
+            def log(line: str) -> None:
+                bar.bar.write(line, file=sys.stdout)
+                sys.stdout.flush()
 
-        run = run_study(study, out, progress=progress, log=log)
+            run = run_study(study, out, progress=progress, log=log)
     print(f"computed {run.computed} cell(s), skipped {run.skipped} already finished; "
           f"{len(run.rows)} rows in {out / 'results.csv'}")
     print(f"wrote {out / 'report.md'}, {out / 'summary.json'} and {len(run.figures)} figure file(s) in "
@@ -253,7 +305,7 @@ def _int_list(text: str, option: str) -> list[int]:
 
 
 class _progress:
-    """A tqdm bar on stderr (silent when stderr is not a terminal) fed by run_trials."""
+    """A tqdm bar on stderr (silent when stderr is not a terminal) fed by the engine's progress."""
 
     def __init__(self, total: int, unit: str):
         self.total, self.unit, self.bar = total, unit, None
@@ -297,7 +349,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = scene_command("reference", "reference value of F at each receiver: closed form or dense quadrature")
     c.add_argument("--receivers", type=_receiver_list, help="comma-separated receiver indices (default: all)")
-    c.add_argument("--samples", type=_positive, default=4096, help="quadrature samples per replica (default 4096)")
+    c.add_argument("--rel-error", metavar="R",
+                   help="quadrature refines until each stderr <= R × |value| (near 0: R × 1e-3 × the value with "
+                        "occluders removed); a number in (0, 1); default 1e-4, seconds per receiver on 2 cores "
+                        "(1e-5 costs ~20× that)")
+    c.add_argument("--samples", metavar="N", help="the most quadrature samples per replica (32 replicas) before it "
+                                                  "stops short of --rel-error with a warning (default 1048576)")
     c.set_defaults(func=cmd_reference)
 
     c = scene_command("estimate", "run M independent trials of one estimator; mean, variance and its interval")
@@ -305,7 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                       "e.g. jittered:balance:light-area+cosine")
     c.add_argument("--n", type=_positive, required=True, help="samples per estimate (N)")
     c.add_argument("--trials", type=_positive, default=1000, help="independent trials (M, default 1000)")
-    c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    c.add_argument("--seed", type=_seed, default=0, help="random seed in [0, 2^32) (default 0)")
     c.add_argument("--receivers", type=_receiver_list, help="comma-separated receiver indices (default: all)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores; results do not depend on it)")
     c.set_defaults(func=cmd_estimate)
@@ -316,7 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--estimators", help="comma-separated estimator specs (default: every estimator the set allows)")
     c.add_argument("--n", help="comma-separated sample counts (default 4,16,64,256,1024)")
     c.add_argument("--trials", type=_positive, default=400, help="trials per cell (default 400)")
-    c.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    c.add_argument("--seed", type=_seed, default=0, help="random seed in [0, 2^32) (default 0)")
     c.add_argument("--receivers", type=_receiver_list,
                    help="comma-separated receiver indices (default: all, or 8 spread through the list when more)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
@@ -341,22 +398,17 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _quiet_warp(device: str) -> None:
-    """Start Warp so that only its errors reach the terminal.
+def _quiet_warp() -> None:
+    """Start Warp so that only warpis's own lines reach the terminal.
 
     On a machine without a GPU, Warp's native library prints a CUDA-driver notice to the
-    process's stderr while it starts; for CPU work that is noise, so the start-up runs
-    with file descriptor 2 pointed at /dev/null.
+    process's stderr while it starts; that is noise (an unusable ``--device`` gets its own
+    one-line error), so the start-up runs with file descriptor 2 pointed at /dev/null.
     """
-    import os
-
     import warp as wp
 
     if hasattr(wp, "LOG_ERROR"):
         wp.config.log_level = wp.LOG_ERROR
-    if not str(device).startswith("cpu"):
-        wp.init()
-        return
     sys.stderr.flush()
     saved = os.dup(2)
     try:
@@ -368,6 +420,11 @@ def _quiet_warp(device: str) -> None:
         os.close(saved)
 
 
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's last flush cannot fail again."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+
 def _version() -> str:
     from . import __version__
 
@@ -377,14 +434,19 @@ def _version() -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``warpis`` console script."""
     args = build_parser().parse_args(argv)
-    _quiet_warp(getattr(args, "device", "cpu"))
+    _quiet_warp()
     try:
+        if hasattr(args, "device"):
+            from .scene import check_device
+
+            check_device(args.device, "--device")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             status = args.func(args)
         for w in caught:
             if not issubclass(w.category, DeprecationWarning):
                 print(f"warpis: warning: {w.message}", file=sys.stderr)
+        _print_flush()
         return status
     except WarpisError as exc:
         print(f"warpis: error: {exc}", file=sys.stderr)
@@ -393,10 +455,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("warpis: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # output piped into head & co.: stop quietly
-        import os
-
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _silence_stdout()
         return 0
+
+
+def _print_flush() -> None:
+    """Flush what commands printed, so that a full stdout fails here and not at exit."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        raise
+    except OSError as exc:
+        _silence_stdout()
+        raise WarpisError(f"standard output: cannot write: {exc.strerror}") from None
 
 
 if __name__ == "__main__":

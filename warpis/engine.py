@@ -5,6 +5,14 @@ one core and releases the GIL) issued from a pool of Python threads, so all core
 Every random number is a pure function of (seed, receiver, trial, technique, sample,
 dimension), so the result is bit-identical whatever the thread count, chunk size or
 receiver order.
+
+Two ways to collect the trials share one launch loop (:func:`_drive`):
+
+* :func:`run_trials` keeps every estimate, an (R, M) float64 array;
+* :func:`run_moments` keeps only running moments per receiver
+  (:class:`~warpis.stats.SampleMoments`): trials are reduced over fixed blocks of
+  ``BLOCK`` trials and the blocks merged in trial order, so memory stays flat in M and
+  the result does not depend on threads or chunks.
 """
 
 from __future__ import annotations
@@ -12,29 +20,45 @@ from __future__ import annotations
 import os
 import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 import warp as wp
 
+from . import limits
 from .errors import WarpisError
 from .estimators import Estimator, KernelArgs, parse_estimator, trial_kernel
 from .scene import Scene
+from .stats import SampleMoments
 from .techniques import light_table
 
 # Target work of one launch, in integrand evaluations: large enough to amortise the
-# launch, small enough that progress moves and threads balance.
+# launch, small enough that progress moves, threads balance and Ctrl-C is prompt.
 CHUNK_EVALUATIONS = 1 << 19
 CHUNKS_PER_THREAD = 16
+# Chunks queued or running per worker thread: enough to keep every core busy, few
+# enough that memory stays flat in M and that Ctrl-C has little to cancel.
+IN_FLIGHT_PER_THREAD = 2
+# Trials per reduction block of run_moments.  Blocks start at multiples of BLOCK
+# whatever the launch chunks are, so the merged moments are bit-identical for any
+# thread count or chunk size; 2^14 keeps the per-block numpy overhead small next to
+# the kernels even for the cheapest estimator.
+BLOCK = 1 << 14
+# Largest launch buffer (R × chunk float64) a worker thread holds; also keeps its row
+# stride within Warp's 32-bit strides.
+MAX_BUFFER_BYTES = 1 << 27
 
 Progress = Callable[[int, int], None]  # (trials done, trials total)
+T = TypeVar("T")
 
 
 def default_threads() -> int:
     """Worker threads for CPU launches: ``WARPIS_THREADS`` or the number of usable cores."""
     env = os.environ.get("WARPIS_THREADS")
     if env:
-        return max(1, int(env))
+        return limits.count_text(env, "WARPIS_THREADS")
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # pragma: no cover - non-Linux
@@ -42,17 +66,191 @@ def default_threads() -> int:
 
 
 def select_receivers(scene: Scene, receivers: Sequence[int] | None) -> np.ndarray:
-    """Receiver indices as int32, validated against the scene."""
-    count = len(scene.receivers)
+    """Receiver indices as int32, validated against the scene (default: all)."""
     if receivers is None:
-        return np.arange(count, dtype=np.int32)
-    idx = np.asarray(list(receivers), dtype=np.int64)
-    if idx.size == 0:
-        raise WarpisError(f"{scene.path}: no receivers selected")
-    bad = idx[(idx < 0) | (idx >= count)]
-    if bad.size:
-        raise WarpisError(f"{scene.path}: receiver {int(bad[0])} does not exist (the scene has {count}: 0–{count - 1})")
-    return idx.astype(np.int32)
+        return np.arange(len(scene.receivers), dtype=np.int32)
+    return limits.receiver_indices(receivers, "receivers", len(scene.receivers))
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One validated run with its kernel inputs uploaded; launches any range of its trials."""
+
+    device: Any
+    spec: str
+    rows: int
+    n: int
+    trials: int
+    head: tuple  # kernel inputs before the trial offset
+    tail: tuple  # kernel inputs between the trial offset and the output
+
+    def launch(self, start: int, count: int, buf: wp.array) -> None:
+        """Trials start..start+count−1 of every receiver into columns 0..count−1 of ``buf``."""
+        wp.launch(trial_kernel, dim=(self.rows, count), device=self.device,
+                  inputs=[*self.head, start, *self.tail, buf])
+
+
+def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed: int,
+             receivers: Sequence[int] | None) -> _Job:
+    """Validate the arguments (nothing truncated or wrapped) and upload the kernel inputs."""
+    est = parse_estimator(estimator)
+    n = limits.count(n, "n")
+    trials = limits.count(trials, "trials")
+    seed = limits.seed(seed)
+    args = KernelArgs.of(est, n)
+    rx = select_receivers(scene, receivers)
+    dev = scene.device
+    head = (scene.data, scene.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))
+    techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
+    tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols)
+    return _Job(dev, est.spec, len(rx), n, trials, head, tail)
+
+
+def _chunk_size(job: _Job, chunk: int | None, workers: int) -> int:
+    """Trials per launch: ``chunk``, or by default about ``CHUNK_EVALUATIONS`` evaluations.
+
+    Either way at most ``MAX_BUFFER_BYTES`` of estimates per launch (each thread holds
+    one such buffer); the chunk size never changes results.
+    """
+    if chunk is None:
+        # Big enough to amortise a launch, small enough for every thread to get many
+        # chunks (the last chunks then finish together).
+        by_work = CHUNK_EVALUATIONS // max(1, job.rows * job.n)
+        chunk = max(1, min(by_work, -(-job.trials // (CHUNKS_PER_THREAD * workers))))
+    cap = max(1, MAX_BUFFER_BYTES // (8 * job.rows))
+    return min(limits.count(chunk, "chunk"), job.trials, cap)
+
+
+def _drive(job: _Job, work: Callable[[int, np.ndarray], T], finish: Callable[[int, int, T], None],
+           threads: int | None, chunk: int | None, progress: Progress | None) -> None:
+    """Launch every chunk of ``job``: ``work(start, values)`` then ``finish(start, count, result)``.
+
+    ``work`` runs in the launching thread right after the launch, on an (R, count) view
+    of that thread's launch buffer, which the thread's next launch overwrites: it keeps
+    only what it copies.  (One buffer per thread, reused, rather than one per chunk:
+    freed chunk-sized buffers pile up in the allocator's per-thread arenas, and the
+    resident memory then grows with the chunk size.)  ``finish`` and ``progress`` run
+    in the calling thread, in completion order.
+
+    On the CPU the launches run on a pool of ``threads`` threads with at most
+    ``IN_FLIGHT_PER_THREAD`` chunks per thread submitted at a time, so pending results
+    stay bounded.  After an exception, Ctrl-C included, no further chunk starts: queued
+    ones are cancelled and only those already running (each small) are waited for.
+    """
+    workers = default_threads() if threads is None else limits.count(threads, "threads")
+    size = _chunk_size(job, chunk, workers)
+    local = threading.local()
+    done = 0
+
+    def task(start: int) -> T:
+        count = min(size, job.trials - start)
+        if not hasattr(local, "buf"):
+            local.buf = wp.empty((job.rows, size), dtype=wp.float64, device=job.device)
+        job.launch(start, count, local.buf)
+        values = local.buf.numpy()[:, :count]
+        _check_finite(job, start, values)
+        return work(start, values)
+
+    def record(start: int, result: T) -> None:
+        nonlocal done
+        count = min(size, job.trials - start)
+        finish(start, count, result)
+        done += count
+        if progress is not None:
+            progress(done, job.trials)
+
+    starts = range(0, job.trials, size)
+    if not wp.get_device(job.device).is_cpu:  # GPU launches are asynchronous: one thread feeds them
+        for start in starts:
+            record(start, task(start))
+        return
+    # On the CPU even one worker is a pool thread: the calling thread then waits in
+    # wait(), where Ctrl-C raises at once, rather than in Warp's calls, where it can land
+    # in a finalizer (array.__del__) and be swallowed.
+    wp.load_module(trial_kernel.module, device=job.device)  # compile once, before threads race to
+    pool = ThreadPoolExecutor(max_workers=workers)
+    running: dict[Future, int] = {}
+    try:
+        for start in starts:
+            if len(running) >= IN_FLIGHT_PER_THREAD * workers:
+                _collect(running, record)
+            running[pool.submit(task, start)] = start
+        while running:
+            _collect(running, record)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _check_finite(job: _Job, start: int, values: np.ndarray) -> None:
+    """A NaN or infinite estimate (a float32 overflow in some integrand or pdf) stops the
+    run: it would make every figure derived from it wrong."""
+    finite = np.isfinite(values)
+    if not finite.all():
+        row, col = np.argwhere(~finite)[0]
+        raise WarpisError(f"estimator {job.spec}: trial {start + col} at receiver row {row} gave "
+                          f"{values[row, col]} (a float32 overflow in the integrand or a pdf); nothing is reported")
+
+
+def _collect(running: dict[Future, int], record: Callable[[int, Any], None]) -> None:
+    """Wait for at least one running chunk; record every finished one."""
+    finished, _ = wait(running, return_when=FIRST_COMPLETED)
+    for future in finished:
+        record(running.pop(future), future.result())
+
+
+# What a chunk leaves of one block: the block's moments when the chunk covers all of
+# it, else (offset of the piece in the block, a copy of the piece).
+_Piece = tuple[int, SampleMoments | tuple[int, np.ndarray]]
+
+
+class _BlockReducer:
+    """Reduces chunks, arriving in any order, to moments over fixed blocks merged in trial order.
+
+    :meth:`split` (in the launching thread) reduces the blocks a chunk covers whole and
+    copies the parts of blocks it covers in part; :meth:`add` (in the calling thread)
+    assembles the parts, and merges finished blocks once every earlier block is merged.
+    A block is always reduced from a fresh contiguous (R, block) array, so the same
+    numbers in the same layout whatever the chunks.  Memory: the partly filled and the
+    waiting blocks, bounded by the chunks in flight.
+    """
+
+    def __init__(self, rows: int, trials: int):
+        self.rows, self.trials = rows, trials
+        self.partial: dict[int, tuple[np.ndarray, int]] = {}  # block → (values, trials arrived)
+        self.waiting: dict[int, SampleMoments] = {}  # reduced blocks with an unmerged predecessor
+        self.next = 0  # the first block not yet merged
+        self.total: SampleMoments | None = None
+
+    def split(self, start: int, values: np.ndarray) -> list[_Piece]:
+        end = start + values.shape[1]
+        pieces: list[_Piece] = []
+        for block in range(start // BLOCK, -(-end // BLOCK)):
+            lo, hi = block * BLOCK, min((block + 1) * BLOCK, self.trials)
+            a, b = max(lo, start), min(hi, end)
+            part = np.array(values[:, a - start:b - start], order="C")
+            pieces.append((block, SampleMoments.of(part) if (a, b) == (lo, hi) else (a - lo, part)))
+        return pieces
+
+    def add(self, start: int, count: int, pieces: list[_Piece]) -> None:
+        for block, piece in pieces:
+            if isinstance(piece, SampleMoments):
+                self.waiting[block] = piece
+                continue
+            offset, part = piece
+            size = min((block + 1) * BLOCK, self.trials) - block * BLOCK
+            buf, filled = self.partial.pop(block, (None, 0))
+            if buf is None:
+                buf = np.empty((self.rows, size))
+            buf[:, offset:offset + part.shape[1]] = part
+            filled += part.shape[1]
+            if filled < size:
+                self.partial[block] = (buf, filled)
+            else:
+                self.waiting[block] = SampleMoments.of(buf)
+        while self.next in self.waiting:
+            block_moments = self.waiting.pop(self.next)
+            self.total = block_moments if self.total is None else self.total.merge(block_moments)
+            self.next += 1
 
 
 def run_trials(
@@ -75,72 +273,72 @@ def run_trials(
     estimator
         An :class:`Estimator` or its spelling, e.g. ``"jittered:balance:light-area+cosine"``.
     n
-        Samples per estimate (N).
+        Samples per estimate (N), an integer in [1, 2^31).
     trials
-        Independent trials (M).
+        Independent trials (M), an integer in [1, 2^31).
     seed
-        Seed of the counter-based generator; different seeds give independent trials.
+        Seed of the counter-based generator, an integer in [0, 2^32); different seeds
+        give independent trials.
     receivers
-        Receiver indices (default: all).
+        Receiver indices, integers (default: all).
     threads
         CPU worker threads (default: :func:`default_threads`).  Does not change results.
     chunk
         Trials per launch (default: about ``CHUNK_EVALUATIONS`` evaluations).  Does not
         change results.
     progress
-        Called as ``progress(done, total)`` in trials after each chunk.
+        Called as ``progress(done, total)`` in trials after each chunk, in the calling thread.
 
     Returns
     -------
     numpy.ndarray
         (R, M) float64 estimates, row i for ``receivers[i]``.
+
+    Raises
+    ------
+    WarpisError
+        For any argument the kernels cannot take exactly, and for an (R, M) array larger
+        than half the available memory (:func:`run_moments` needs no such array).
     """
-    est = parse_estimator(estimator)
-    args = KernelArgs.of(est, int(n))
-    if trials < 1:
-        raise WarpisError(f"trials must be at least 1 (got {trials})")
-    if not 0 <= int(seed) < 2**32:
-        raise WarpisError(f"seed must be in [0, 2^32) (got {seed})")
-    rx = select_receivers(scene, receivers)
-    dev = scene.device
-    table = light_table(scene)
-    rx_wp = wp.array(rx, dtype=wp.int32, device=dev)
-    techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
-    out = wp.zeros((len(rx), trials), dtype=wp.float64, device=dev)
-    workers = threads or default_threads()
-    if chunk is None:
-        # Big enough to amortise a launch, small enough for every thread to get many
-        # chunks (the last chunks then finish together).
-        by_work = CHUNK_EVALUATIONS // max(1, len(rx) * int(n))
-        chunk = max(1, min(by_work, -(-trials // (CHUNKS_PER_THREAD * workers))))
-    chunk = max(1, min(int(chunk), trials))
-    starts = list(range(0, trials, chunk))
+    job = _prepare(scene, estimator, n, trials, seed, receivers)
+    limits.memory(job.rows * job.trials * 8, "trials")
+    out = np.empty((job.rows, job.trials))
 
-    def launch(start: int) -> int:
-        count = min(chunk, trials - start)
-        wp.launch(trial_kernel, dim=(len(rx), count), device=dev,
-                  inputs=[scene.data, scene.receiver_data, table, rx_wp, start, wp.uint32(int(seed)), args.pattern,
-                          args.combiner, techs, args.m, args.rows, args.cols, out])
-        return count
+    def work(start: int, values: np.ndarray) -> None:
+        out[:, start:start + values.shape[1]] = values  # chunks write disjoint columns
 
-    done = 0
-    lock = threading.Lock()
+    _drive(job, work, lambda start, count, result: None, threads, chunk, progress)
+    return out
 
-    def run(start: int) -> None:
-        nonlocal done
-        count = launch(start)
-        with lock:
-            done += count
-            if progress is not None:
-                progress(done, trials)
 
-    if wp.get_device(dev).is_cpu and workers > 1 and len(starts) > 1:
-        wp.load_module(trial_kernel.module, device=dev)  # compile once, before threads race to
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            for f in [pool.submit(run, s) for s in starts]:
-                f.result()
-    else:
-        for s in starts:
-            run(s)
-    wp.synchronize_device(dev)
-    return out.numpy()
+def run_moments(
+    scene: Scene,
+    estimator: str | Estimator,
+    n: int,
+    trials: int,
+    seed: int = 0,
+    receivers: Sequence[int] | None = None,
+    threads: int | None = None,
+    chunk: int | None = None,
+    progress: Progress | None = None,
+) -> SampleMoments:
+    """Running moments of the same trials as :func:`run_trials`, in memory flat in M.
+
+    Takes the arguments of :func:`run_trials`.  Trials are reduced per receiver over
+    fixed blocks of ``BLOCK`` trials (two-pass, float64) and the blocks merged in trial
+    order with Pébay's pairwise formulas, so ``run_moments(...).interval()`` agrees with
+    ``variance_interval(run_trials(...))`` to rounding (relative ~1e-12) and is
+    bit-identical for any ``threads`` and ``chunk``.
+
+    Returns
+    -------
+    SampleMoments
+        Per-receiver count, mean and central moment sums M2, M3, M4 (row i for
+        ``receivers[i]``); ``.interval(level)`` gives the mean, its stderr, s², se(s²)
+        and the fourth-moment interval.
+    """
+    job = _prepare(scene, estimator, n, trials, seed, receivers)
+    reducer = _BlockReducer(job.rows, job.trials)
+    _drive(job, reducer.split, reducer.add, threads, chunk, progress)
+    assert reducer.total is not None and not reducer.partial and not reducer.waiting
+    return reducer.total

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import warp as wp
 
+from . import limits
 from .errors import WarpisError
 from .integrand import ShadingPoint, integrand, shading_point
 from .patterns import PATTERNS, grid_shape, pattern_point, pattern_problem
@@ -93,18 +94,18 @@ class Estimator:
 
     def check_n(self, n: int) -> None:
         """Raise a one-line error if this estimator cannot use N = ``n`` samples."""
-        if n < 1:
-            raise WarpisError(f"estimator {self.spec!r}: N must be at least 1 (got {n})")
+        limits.count(n, f"estimator {self.spec!r}: N")
         k = self.technique_count
         if self.combiner in ("balance", "power") and n % k:
             valid = ", ".join(str(k * i) for i in range(1, 5))
             raise WarpisError(f"estimator {self.spec!r}: N = {n} is not divisible by its {k} techniques "
                               f"(valid: multiples of {k}, e.g. {valid}, …)")
-        problem = pattern_problem(self.pattern, self.per_technique(n))
+        m = self.per_technique(n)
+        problem = pattern_problem(self.pattern, m)
         if problem:
             step = 2 * (k if self.combiner in ("balance", "power") else 1)
-            raise WarpisError(f"estimator {self.spec!r}: pattern {self.pattern!r} {problem}; "
-                              f"valid N: multiples of {step}")
+            hint = f"; valid N: multiples of {step}" if m % 2 and "antithetic" in self.pattern else ""
+            raise WarpisError(f"estimator {self.spec!r}: pattern {self.pattern!r} {problem}{hint}")
 
 
 def parse_estimator(spec: str | Estimator) -> Estimator:
@@ -132,7 +133,7 @@ class KernelArgs:
 
     @classmethod
     def of(cls, est: Estimator, n: int) -> "KernelArgs":
-        est.check_n(n)
+        est.check_n(n)  # before anything is computed from n: no truncation, no int32 wrap
         m = est.per_technique(n)
         rows, cols = grid_shape(m)
         return cls(PATTERNS[est.pattern], COMBINERS[est.combiner], tuple(TECHNIQUES[t] for t in est.techniques),
@@ -226,11 +227,12 @@ def trial_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receiv
                  trial_offset: wp.int32, seed: wp.uint32, pattern: wp.int32, combiner: wp.int32,
                  techs: wp.array(dtype=wp.int32), m: wp.int32, rows: wp.int32, cols: wp.int32,
                  out: wp.array2d(dtype=wp.float64)):
-    """One estimate per thread: receiver row i, trial trial_offset + j."""
+    """One estimate per thread: receiver row i, trial trial_offset + j, into out[i, j]
+    (``out`` holds one launch's trials; the trial number only seeds the generator)."""
     i, j = wp.tid()
     trial = trial_offset + j
     sp = shading_point(scene, recv, receivers[i])
     if combiner == MIXTURE:
-        out[i, trial] = mixture_trial(scene, table, sp, seed, trial, pattern, techs, m, rows, cols)
+        out[i, j] = mixture_trial(scene, table, sp, seed, trial, pattern, techs, m, rows, cols)
     else:
-        out[i, trial] = stratified_trial(scene, table, sp, seed, trial, pattern, combiner, techs, m, rows, cols)
+        out[i, j] = stratified_trial(scene, table, sp, seed, trial, pattern, combiner, techs, m, rows, cols)

@@ -6,11 +6,15 @@ emission, which is also how visibility V enters), and ρ is 1 (irradiance), albe
 (lambert) or the energy-normalised Phong lobe albedo·(e+2)/(2π)·max(0, cos α)^e about
 the mirror direction of the view.
 
-Ray origin: receivers sit exactly on their surface, and Warp's mesh query accepts hits
-at t ≥ 0 with no t_min, so every ray (and every light-sampling pdf, which must agree) is
-cast from the *shading point* p = x + ε·n, with ε = ``RAY_EPSILON`` × the scene's
-diagonal (see scene.py).  warpis therefore integrates, exactly and consistently, the
-illumination at p, a relative offset of 1e-5 of the scene size above x.
+Ray origin: warpis integrates F at the receiver x itself.  Sampling, pdfs and f all
+refer to directions from x.  Receivers sit exactly on their surface, and Warp's mesh
+query accepts hits at t ≥ 0 with no t_min, so a ray from x could hit the surface it
+starts on.  The ray along ω therefore starts at x + (δ / n·ω)·ω: the same ray, with the
+part below height δ over the receiver's tangent plane skipped, δ = the receiver's
+self-hit slab (``SELF_HIT_SLAB`` × the float32 magnitude of the coordinates around x,
+see scene.py).  Nothing depends on the scene's size: scaling a scene, or adding a huge
+floor far away, leaves F unchanged.  Only geometry inside that slab is ignored, which
+changes F by a second-order amount (docs/theory.md, "The integrand at a receiver").
 """
 
 from __future__ import annotations
@@ -32,8 +36,9 @@ class ShadingPoint:
     """A receiver as the techniques and the integrand see it."""
 
     receiver: wp.int32
-    p: wp.vec3  # ray origin: the receiver lifted by ε along its normal
+    p: wp.vec3  # the receiver x: every direction is from here
     n: wp.vec3
+    slab: float  # self-hit slab height above the tangent plane
     material: wp.int32
     albedo: float
     exponent: float
@@ -47,8 +52,9 @@ def shading_point(scene: SceneData, recv: ReceiverData, r: wp.int32) -> ShadingP
     n = recv.normal[r]
     v = recv.view[r]
     sp.receiver = r
-    sp.p = recv.position[r] + scene.ray_eps * n
+    sp.p = recv.position[r]
     sp.n = n
+    sp.slab = recv.slab[r]
     sp.material = recv.material[r]
     sp.albedo = recv.albedo[r]
     sp.exponent = recv.exponent[r]
@@ -89,7 +95,9 @@ def integrand(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
     rho = brdf(sp, w)
     if rho == 0.0:
         return 0.0
-    return incident_radiance(scene, sp.p, w) * rho * cos_n
+    # Start the ray where it leaves the self-hit slab: the same ray from x, so no
+    # direction, pdf or solid angle moves (see the module docstring).
+    return incident_radiance(scene, sp.p + w * (sp.slab / cos_n), w) * rho * cos_n
 
 
 @wp.kernel

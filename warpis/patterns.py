@@ -21,6 +21,10 @@ JITTERED = wp.constant(1)
 ANTITHETIC = wp.constant(2)
 JITTERED_ANTITHETIC = wp.constant(3)
 
+# float32 holds every integer up to 2^24 exactly: a jittered cell index beyond it (and a
+# cell narrower than the generator's 2^-24 lattice) would no longer be placed exactly.
+MAX_CELLS_PER_SIDE = 1 << 24
+
 PATTERNS = {
     "independent": 0,
     "jittered": 1,
@@ -30,8 +34,12 @@ PATTERNS = {
 
 
 def grid_shape(m: int) -> tuple[int, int]:
-    """(rows, cols) with rows × cols = m and rows the largest divisor of m ≤ √m."""
-    rows = max(d for d in range(1, math.isqrt(m) + 1) if m % d == 0)
+    """(rows, cols) with rows × cols = m and rows the largest divisor of m ≤ √m.
+
+    Searches down from ⌊√m⌋ and stops at the first divisor: at most √m steps, i.e.
+    46,341 for the largest N the kernels take (limits.MAX_COUNT).
+    """
+    rows = next(d for d in range(math.isqrt(m), 0, -1) if m % d == 0)
     return rows, m // rows
 
 
@@ -41,6 +49,10 @@ def pattern_problem(pattern: str, m: int) -> str | None:
         return "needs at least one sample per technique"
     if pattern in ("antithetic", "jittered-antithetic") and m % 2:
         return f"pairs samples, so it needs an even number of samples per technique (got {m})"
+    if pattern in ("jittered", "jittered-antithetic") and max(grid_shape(m)) > MAX_CELLS_PER_SIDE:
+        rows, cols = grid_shape(m)
+        return (f"lays {m} samples per technique on a {rows} × {cols} grid, and float32 cannot place points "
+                f"inside more than {MAX_CELLS_PER_SIDE} cells per side")
     return None
 
 

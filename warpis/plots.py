@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -11,17 +12,24 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from . import outdir  # noqa: E402
+
 FORMATS = ("png", "pdf")
 
 
 def _save(fig, out: Path, stem: str) -> list[Path]:
-    out.mkdir(parents=True, exist_ok=True)
+    """Each format written atomically (a report never links a half-written figure); a one-line
+    WarpisError when it cannot be written."""
     paths = []
-    for ext in FORMATS:
-        path = out / f"{stem}.{ext}"
-        fig.savefig(path, dpi=120, bbox_inches="tight")
-        paths.append(path)
-    plt.close(fig)
+    try:
+        outdir.make_dir(out)
+        for ext in FORMATS:
+            path = out / f"{stem}.{ext}"
+            with outdir.replacing(path) as fh:
+                fig.savefig(fh, format=ext, dpi=120, bbox_inches="tight")
+            paths.append(path)
+    finally:
+        plt.close(fig)
     return paths
 
 
@@ -70,10 +78,21 @@ def convergence_plot(rows: Sequence[dict], receiver: int, out: Path, stem: str |
     return slope_convergence_plot(series, title, out, stem or f"variance-vs-n-receiver-{receiver}")
 
 
+SLUG_LENGTH = 64
+
+
 def _slug(text: str) -> str:
-    """A file-name-safe version of a scene or estimator name."""
-    out = "".join(ch if ch.isalnum() or ch in "._-" else "-" for ch in text)
-    return out.strip("-") or "x"
+    """A file-name-safe version of a scene or estimator name, distinct for distinct names.
+
+    Characters a file name cannot hold become '-'; when that (or shortening a long name)
+    changed the name, a short digest of the real name follows, so ``a/b`` and ``a:b`` do
+    not overwrite each other's figures.
+    """
+    out = "".join(ch if ch.isalnum() or ch in "._-" else "-" for ch in text).strip("-")
+    if out and out == text and len(out) <= SLUG_LENGTH:
+        return out
+    digest = hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:8]
+    return f"{out[:SLUG_LENGTH]}-{digest}" if out else digest
 
 
 def slope_convergence_plot(series: Sequence[dict], title: str, out: Path, stem: str) -> list[Path]:

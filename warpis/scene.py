@@ -9,7 +9,9 @@ the format.  Everything is validated before any Warp array is made: bad input ra
 
 from __future__ import annotations
 
+import io
 import math
+import re
 import tomllib
 import warnings
 from dataclasses import dataclass, field
@@ -21,7 +23,8 @@ import numpy as np
 import trimesh
 import warp as wp
 
-from .errors import fail
+from . import limits
+from .errors import WarpisError, fail
 
 MATERIALS = {"irradiance": 0, "lambert": 1, "phong": 2}
 MATERIAL_KEYS = {
@@ -29,12 +32,14 @@ MATERIAL_KEYS = {
     "lambert": {"type", "albedo"},
     "phong": {"type", "albedo", "exponent", "view"},
 }
-# Emitter triangles smaller than this fraction of the squared scene diagonal are
-# treated as degenerate: they cannot be hit by a ray nor sampled with a finite pdf.
+# Emitter triangles whose area is below this fraction of their longest edge squared are
+# needles: no float32 ray can hit them reliably nor can they be sampled with a finite pdf.
 DEGENERATE_AREA = 1e-12
-# Ray origins are pushed off the receiver's surface by this fraction of the scene
-# diagonal (Warp's mesh query accepts hits at t >= 0 and has no t_min).
-RAY_EPSILON = 1e-5
+# Self-hit slab, relative to the float32 magnitude of the coordinates around a receiver:
+# rays ignore surfaces within this height above the receiver's tangent plane (see
+# integrand.py).  2^-16 is 128 float32 ulps: far above the rounding of Warp's watertight
+# ray-triangle test, and second order in F (docs/theory.md, "The integrand at a receiver").
+SELF_HIT_SLAB = 2.0**-16
 
 
 @wp.struct
@@ -53,7 +58,6 @@ class SceneData:
     total_area: wp.float32
     total_power: wp.float32  # Σ radiance × area
     emitter_count: wp.int32
-    ray_eps: wp.float32
 
 
 @wp.struct
@@ -66,6 +70,7 @@ class ReceiverData:
     albedo: wp.array(dtype=wp.float32)
     exponent: wp.array(dtype=wp.float32)
     view: wp.array(dtype=wp.vec3)  # unit direction towards the viewer
+    slab: wp.array(dtype=wp.float32)  # self-hit slab height above the tangent plane
 
 
 @dataclass
@@ -106,6 +111,7 @@ class Scene:
     emitter_areas: np.ndarray  # (E,)
     receivers: Receivers
     description: str = ""
+    slab: np.ndarray | None = None  # (R,) self-hit slab height of each receiver (see upload)
     data: Any = None  # SceneData on `device`
     receiver_data: Any = None  # ReceiverData on `device`
     _keep: list = field(default_factory=list, repr=False)  # Warp objects the structs point into
@@ -221,9 +227,26 @@ def _vectors(value: Any, what: str, file: Path) -> np.ndarray:
     return np.array([_vector(v, what, file) for v in value], dtype=np.float64).reshape(-1, 3)
 
 
+def _float32(value: float, what: str, file: Path) -> float:
+    """A value >= 0 in the float32 kernels' range (see limits.float32_value)."""
+    try:
+        return limits.float32_value(value, what)
+    except WarpisError as exc:
+        raise fail(file, str(exc)) from None
+
+
+def _coordinates(points: np.ndarray, what: str, file: Path) -> np.ndarray:
+    """Points whose coordinates float32 kernels can hold and square (limits.coordinates)."""
+    try:
+        limits.coordinates(points, what)
+    except WarpisError as exc:
+        raise fail(file, str(exc)) from None
+    return points
+
+
 def _unit(v: np.ndarray, what: str, file: Path) -> np.ndarray:
     norms = np.linalg.norm(v, axis=-1, keepdims=True)
-    if np.any(norms < 1e-12):
+    if not np.all(norms > 0):
         raise fail(file, f"{what} has zero length")
     return v / norms
 
@@ -268,12 +291,31 @@ def _transform(spec: Any, where: str, file: Path) -> np.ndarray:
     return m
 
 
+# Text formats whose loaders decode the file: trimesh guesses a non-UTF-8 encoding with
+# the optional charset_normalizer, so warpis decodes them itself (UTF-8, else Latin-1,
+# which accepts any byte; only comments and names can hold such bytes).
+_TEXT_FORMATS = {".obj", ".off"}
+
+
+def _trimesh_load(path: Path) -> Any:
+    if path.suffix.lower() not in _TEXT_FORMATS:
+        return trimesh.load(str(path), force="mesh", process=False)
+    raw = path.read_bytes()
+    try:
+        raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raw = raw.decode("latin-1").encode("utf-8")
+    return trimesh.load(io.BytesIO(raw), file_type=path.suffix[1:].lower(), force="mesh", process=False)
+
+
 def _read_mesh(path: Path, scene_file: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and triangles of a mesh file, exactly as written (no vertex merging)."""
     if not path.is_file():
         raise fail(path, f"mesh file not found (named in {scene_file})")
     try:
-        loaded = trimesh.load(str(path), force="mesh", process=False)
+        loaded = _trimesh_load(path)
+    except OSError as exc:
+        raise fail(path, f"cannot read: {exc.strerror or exc}") from None
     except Exception as exc:  # trimesh raises many types for unparsable files
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise fail(path, f"trimesh cannot read this mesh: {reason}") from None
@@ -304,15 +346,12 @@ def _material(spec: Any, where: str, file: Path) -> dict[str, Any]:
     if kind not in MATERIALS:
         raise fail(file, f"{where}.type {kind!r} is not one of {', '.join(MATERIALS)}")
     _check_keys(spec, MATERIAL_KEYS[kind], where, file)
-    albedo = _number(spec.get("albedo", 1.0), f"{where}.albedo", file)
-    if albedo < 0:
-        raise fail(file, f"{where}.albedo must be >= 0, got {albedo}")
+    albedo = _float32(_number(spec.get("albedo", 1.0), f"{where}.albedo", file), f"{where}.albedo", file)
     exponent = 1.0
     view = np.array([0.0, 0.0, 1.0])
     if kind == "phong":
         exponent = _number(_require(spec, "exponent", where, file), f"{where}.exponent", file)
-        if exponent < 0:
-            raise fail(file, f"{where}.exponent must be >= 0, got {exponent}")
+        exponent = _float32(exponent, f"{where}.exponent", file)
         view = _unit(_vector(_require(spec, "view", where, file), f"{where}.view", file), f"{where}.view", file)
     return {"code": MATERIALS[kind], "albedo": albedo, "exponent": exponent, "view": view}
 
@@ -331,14 +370,31 @@ def _grid_points(spec: Any, where: str, file: Path) -> tuple[np.ndarray, tuple[i
     nu, nv = res
     if nu < 1 or nv < 1:
         raise fail(file, f"{where}.grid.resolution must be at least [1, 1], got {res!r}")
+    _receiver_count(nu * nv, f"{where}.grid.resolution {res!r}", file)
     cross = np.cross(eu, ev)
-    if np.linalg.norm(cross) < 1e-12:
+    # Relative to the edges' own lengths: a grid's size is the user's choice of units.
+    if not np.linalg.norm(cross) > 1e-12 * np.linalg.norm(eu) * np.linalg.norm(ev):
         raise fail(file, f"{where}.grid edges are parallel or zero")
     # Cell centres, row-major over (v, u) so that reshape(nv, nu) is an image.
     su = (np.arange(nu) + 0.5) / nu
     sv = (np.arange(nv) + 0.5) / nv
     pts = origin + sv[:, None, None] * ev + su[None, :, None] * eu
     return pts.reshape(-1, 3), (nv, nu), cross / np.linalg.norm(cross)
+
+
+# Bytes a receiver costs while a scene loads (float64 numpy arrays, their float32 Warp
+# copies, the slab and the light table's row headers), for the memory check up front.
+RECEIVER_BYTES = 256
+
+
+def _receiver_count(count: int, what: str, file: Path) -> None:
+    """Refuse up front a receiver count the kernels cannot index or memory cannot hold."""
+    if count > limits.MAX_COUNT:
+        raise fail(file, f"{what}: {count:,} receivers, more than the {limits.MAX_COUNT:,} the kernels can index")
+    try:
+        limits.memory(count * RECEIVER_BYTES, f"{what} ({count:,} receivers)")
+    except WarpisError as exc:
+        raise fail(file, str(exc)) from None
 
 
 def _receiver_group(spec: Any, where: str, file: Path, default_material: dict | None) -> dict[str, Any]:
@@ -375,6 +431,7 @@ def _receiver_group(spec: Any, where: str, file: Path, default_material: dict | 
     name = spec.get("name", where)
     if not isinstance(name, str):
         raise fail(file, f"{where}.name must be a string")
+    _coordinates(points, f"{where} receivers", file)
     return {"points": points, "normals": normals, "material": material, "name": name, "grid": grid_shape}
 
 
@@ -389,6 +446,7 @@ def _receivers(doc: dict, file: Path) -> Receivers:
         for i, g in enumerate(groups_spec)
     ]
     count = [len(g["points"]) for g in groups]
+    _receiver_count(sum(count), "[[receivers]]", file)
     return Receivers(
         positions=np.vstack([g["points"] for g in groups]),
         normals=np.vstack([g["normals"] for g in groups]),
@@ -405,7 +463,8 @@ def _receivers(doc: dict, file: Path) -> Receivers:
 # --------------------------------------------------------------------------- loading
 
 
-def _parse_toml(file: Path) -> dict:
+def read_toml(file: Path) -> dict:
+    """Parse a TOML file (scene or study); any unreadable file is a one-line WarpisError."""
     try:
         with open(file, "rb") as fh:
             return tomllib.load(fh)
@@ -413,6 +472,10 @@ def _parse_toml(file: Path) -> dict:
         raise fail(file, f"not valid TOML: {exc}") from None
     except UnicodeDecodeError as exc:
         raise fail(file, f"not valid TOML: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except RecursionError:
+        raise fail(file, "not valid TOML: nested too deeply") from None
+    except IsADirectoryError:
+        raise fail(file, "is a directory, not a TOML file") from None
     except OSError as exc:
         raise fail(file, f"cannot read: {exc.strerror}") from None
 
@@ -432,12 +495,17 @@ def _meshes(doc: dict, file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
         if not isinstance(rel, str):
             raise fail(file, f"{where}.path must be a string")
         radiance = entry.get("emission", 0.0)
-        if isinstance(radiance, bool) or not isinstance(radiance, (int, float)) or not radiance >= 0 or math.isinf(radiance):
+        if isinstance(radiance, bool) or not isinstance(radiance, (int, float)):
             raise fail(file, f"{where} ({rel}): emission must be a finite number >= 0, got {radiance!r}")
+        radiance = _float32(float(radiance), f"{where} ({rel}): emission", file)
+        if not isinstance(entry.get("name", ""), str):
+            raise fail(file, f"{where}.name must be a string, got {entry['name']!r}")
         v, f = _read_mesh((file.parent / rel), file)
         if "transform" in entry:
             m = _transform(entry["transform"], where, file)
-            v = v @ m[:3, :3].T + m[:3, 3]
+            with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
+                v = v @ m[:3, :3].T + m[:3, 3]
+        _coordinates(v, f"{where} ({rel}) after its transform", file)
         vertices.append(v)
         triangles.append(f + offset)
         emission.append(np.full(len(f), float(radiance)))
@@ -447,16 +515,29 @@ def _meshes(doc: dict, file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission), np.concatenate(owner), paths
 
 
+def _degenerate(vertices: np.ndarray, triangles: np.ndarray, areas: np.ndarray) -> np.ndarray:
+    """Needle or point triangles: area at most DEGENERATE_AREA × longest edge², or an
+    area float32 cannot hold (below its smallest normal number)."""
+    v = vertices[triangles]
+    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]], axis=1)
+    longest = (edges**2).sum(axis=2).max(axis=1)
+    return (areas <= DEGENERATE_AREA * longest) | (areas < limits.FLOAT32_TINY)
+
+
 def _emitters(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray, owner: np.ndarray,
-              paths: list[str], file: Path, diagonal: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              paths: list[str], file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Emitter triangle indices and areas; degenerate emitter triangles are dropped."""
     areas = _triangle_areas(vertices, triangles)
+    needles = _degenerate(vertices, triangles, areas)
     emission = emission.copy()
     for m in np.unique(owner[emission > 0]):
         mine = (owner == m) & (emission > 0)
-        degenerate = mine & (areas <= DEGENERATE_AREA * diagonal**2)
+        degenerate = mine & needles
         if degenerate[mine].all():
-            raise fail(file.parent / paths[m], "every emitter triangle has zero area")
+            tiny = 0 < areas[mine].max() < limits.FLOAT32_TINY
+            raise fail(file.parent / paths[m], "every emitter triangle has zero area" if not tiny else
+                       f"every emitter triangle's area is below float32's smallest normal number "
+                       f"({limits.FLOAT32_TINY:.3g}): rescale the scene")
         if degenerate.any():
             warnings.warn(f"{file.parent / paths[m]}: dropped {int(degenerate.sum())} zero-area emitter triangle(s)",
                           stacklevel=3)
@@ -465,6 +546,24 @@ def _emitters(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
     if len(emitters) == 0:
         raise fail(file, "the scene has no emitter (give some [[mesh]] an emission > 0)")
     return emitters, areas[emitters], emission
+
+
+def check_device(device: str, what: str = "device") -> str:
+    """``device`` if it names a Warp device of this machine (cpu, cuda, cuda:N), else a
+    one-line error saying which devices exist."""
+    name = str(device)
+    if name == "cpu":
+        return name
+    match = re.fullmatch(r"cuda(?::(\d+))?", name)
+    if match is None:
+        raise WarpisError(f"{what} {name!r}: unknown device (valid: cpu, cuda, cuda:N)")
+    count = wp.get_cuda_device_count()
+    if count == 0:
+        raise WarpisError(f"{what} {name!r}: this machine has no CUDA device (use cpu)")
+    ordinal = int(match.group(1) or 0)
+    if ordinal >= count:
+        raise WarpisError(f"{what} {name!r}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+    return name
 
 
 def load_scene(scene: str | Path, device: str = "cpu") -> Scene:
@@ -487,17 +586,18 @@ def load_scene(scene: str | Path, device: str = "cpu") -> Scene:
     WarpisError
         One line naming the file and the problem, for any invalid input.
     """
+    check_device(device)
     file = resolve_scene_path(scene)
-    doc = _parse_toml(file)
+    doc = read_toml(file)
     _check_keys(doc, {"name", "description", "mesh", "receivers", "material"}, "the top level", file)
     name = doc.get("name", file.parent.name if file.name == "scene.toml" else file.stem)
     if not isinstance(name, str):
         raise fail(file, "name must be a string")
+    if not isinstance(doc.get("description", ""), str):
+        raise fail(file, "description must be a string")
     vertices, triangles, emission, owner, paths = _meshes(doc, file)
     receivers = _receivers(doc, file)
-    pts = np.vstack([vertices, receivers.positions])
-    diagonal = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0))) or 1.0
-    emitters, areas, emission = _emitters(vertices, triangles, emission, owner, paths, file, diagonal)
+    emitters, areas, emission = _emitters(vertices, triangles, emission, owner, paths, file)
     result = Scene(
         name=name, path=file, device=str(device), vertices=vertices, triangles=triangles,
         triangle_mesh=owner, mesh_paths=paths, emission=emission, emitters=emitters,
@@ -514,16 +614,46 @@ def _cdf(weights: np.ndarray) -> np.ndarray:
     return c.astype(np.float32)
 
 
+@wp.kernel
+def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                 position: wp.array(dtype=wp.vec3), slab: wp.array(dtype=wp.float32)):
+    """Slab height of each receiver: SELF_HIT_SLAB × the largest coordinate magnitude of
+    the receiver and of every triangle whose bounds hold it (its own surface among them).
+
+    Warp's watertight ray test works on vertex − origin differences, so its rounding
+    scales with those magnitudes; the slab follows them and nothing else (no scene size).
+    """
+    r = wp.tid()
+    x = position[r]
+    scale = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
+    reach = scale * 1.0e-6 + 1.0e-30
+    query = wp.mesh_query_aabb(mesh, x - wp.vec3(reach), x + wp.vec3(reach))
+    face = wp.int32(0)
+    while wp.mesh_query_aabb_next(query, face):
+        for j in range(3):
+            v = points[indices[face * 3 + j]]
+            scale = wp.max(scale, wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2])))
+    slab[r] = scale * SELF_HIT_SLAB
+
+
+def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 bounds of emitter triangles, widened by a little of each triangle's own
+    size and magnitude: flat (axis-aligned) triangles get boxes of non-zero width, and a
+    ray the widened triangle test (EDGE_SLACK) accepts is never culled by float32 box
+    rounding.  A wider box costs a few more triangle tests, never a wrong pdf."""
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    pad = 1e-4 * (hi - lo).max(axis=1) + 2.0**-14 * np.abs(corners).max(axis=(1, 2))
+    return (lo - pad[:, None]).astype(np.float32), (hi + pad[:, None]).astype(np.float32)
+
+
 def upload(scene: Scene, device: str) -> None:
     """Build the Warp meshes and structs of ``scene`` on ``device`` (in place)."""
     with wp.ScopedDevice(device):
         points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3)
         indices = wp.array(scene.triangles.reshape(-1).astype(np.int32), dtype=wp.int32)
         mesh = wp.Mesh(points=points, indices=indices)
-        corners = scene.triangle_vertices(scene.emitters).astype(np.float32)
-        pad = np.float32(RAY_EPSILON * scene.diagonal)  # flat triangles get boxes of non-zero width
-        emitter_bvh = wp.Bvh(wp.array(corners.min(axis=1) - pad, dtype=wp.vec3),
-                             wp.array(corners.max(axis=1) + pad, dtype=wp.vec3))
+        lower, upper = _emitter_boxes(scene.triangle_vertices(scene.emitters))
+        emitter_bvh = wp.Bvh(wp.array(lower, dtype=wp.vec3), wp.array(upper, dtype=wp.vec3))
         d = SceneData()
         d.mesh = mesh.id
         d.emitter_bvh = emitter_bvh.id
@@ -537,7 +667,6 @@ def upload(scene: Scene, device: str) -> None:
         d.total_area = float(scene.total_emitter_area)
         d.total_power = float(scene.total_power)
         d.emitter_count = int(scene.emitter_count)
-        d.ray_eps = float(RAY_EPSILON * scene.diagonal)
         r = scene.receivers
         rd = ReceiverData()
         rd.position = wp.array(r.positions.astype(np.float32), dtype=wp.vec3)
@@ -546,7 +675,10 @@ def upload(scene: Scene, device: str) -> None:
         rd.albedo = wp.array(r.albedo.astype(np.float32), dtype=wp.float32)
         rd.exponent = wp.array(r.exponent.astype(np.float32), dtype=wp.float32)
         rd.view = wp.array(r.view.astype(np.float32), dtype=wp.vec3)
+        rd.slab = wp.zeros(len(r), dtype=wp.float32)
+        wp.launch(_slab_kernel, dim=len(r), inputs=[mesh.id, points, indices, rd.position, rd.slab])
     scene.device = str(device)
+    scene.slab = rd.slab.numpy().astype(np.float64)
     scene.data = d
     scene.receiver_data = rd
     scene._keep = [points, indices, mesh, emitter_bvh]

@@ -3,8 +3,10 @@
 A study file holds one ``[study]`` table (README.md, "Studies", gives the format).  A
 *cell* is scene × estimator × N over the study's receivers of that scene; each cell adds
 one row per receiver to ``OUT/results.csv`` and refreshes ``OUT/summary.json``.  Both are
-rewritten after every cell through a temporary file and :func:`os.replace`, so a run killed
-at any moment leaves valid files holding every finished cell.
+rewritten after every cell through a uniquely named temporary file and :func:`os.replace`,
+so a run killed at any moment leaves valid files holding every finished cell.  A run holds
+an exclusive lock on ``OUT`` (``OUT/.lock``, :mod:`warpis.outdir`) from start to end, so a
+second run on the same folder stops at once instead of racing the first.
 
 Each cell has a *key*: a hash of the scene file's and its mesh files' content, the
 estimator, N, the trials, the seed, the receivers, whether predictions are attached and
@@ -16,9 +18,10 @@ receivers in order within a cell).  Every number is deterministic, so a resumed 
 with the same files as an uninterrupted one, except the ``seconds`` of the cells the
 second run computed.  ``summary.json`` holds no timings and is byte-identical.
 
-After the last cell the figures (``OUT/figures/``) and ``OUT/report.md`` are written from
-the rows: convergence plots with fitted slopes, variance maps over a receiver grid and a
-calibration plot of the predictions.
+After the last cell the figures (``OUT/figures/``) and then ``OUT/report.md`` are written
+from the rows, each atomically: convergence plots with fitted slopes, variance maps over a
+receiver grid and a calibration plot of the predictions.  A damaged ``results.csv`` costs
+only its unreadable rows, whose cells are recomputed.
 """
 
 from __future__ import annotations
@@ -28,10 +31,8 @@ import hashlib
 import io
 import json
 import math
-import os
 import re
 import time
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,10 +40,11 @@ from typing import Any
 
 import numpy as np
 
-from .engine import run_trials, select_receivers
+from . import limits, outdir
+from .engine import run_trials
 from .errors import WarpisError
 from .estimators import Estimator, parse_estimator
-from .scene import Scene, bundled_scenes, load_scene, resolve_scene_path
+from .scene import Scene, bundled_scenes, load_scene, read_toml, resolve_scene_path
 from .stats import fit_slope, variance_interval
 
 STUDY_KEYS = ("name", "description", "seed", "trials", "n", "scenes", "estimators", "receivers", "predictions",
@@ -58,6 +60,9 @@ HEADER = (["scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mea
            "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi"]
           + [f"pred_{f}" for f in FORMS] + [f"z_{f}" for f in Z_FORMS] + ["seconds", "warpis_version", "cell"])
 MIN_TRIALS = 4
+# Bytes per trial estimate while a cell runs: the float64 result and about three
+# float64 temporaries of the same size in stats.variance_interval.
+TRIAL_BYTES = 32
 # Convergence figures per scene: the first receivers of the study's list for that scene.
 MAX_CONVERGENCE_RECEIVERS = 8
 Z95 = 1.959963984540054
@@ -166,15 +171,7 @@ def scene_digest(scene: Scene) -> str:
 def load_study(path: str | Path, threads: int | None = None) -> Study:
     """Read and validate a study file; every scene is loaded.  One-line WarpisError naming the file."""
     file = Path(path)
-    try:
-        with open(file, "rb") as fh:
-            doc = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise WarpisError(f"{file}: not valid TOML: {exc}") from None
-    except UnicodeDecodeError as exc:
-        raise WarpisError(f"{file}: not valid TOML: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    except OSError as exc:
-        raise WarpisError(f"{file}: cannot read: {exc.strerror}") from None
+    doc = read_toml(file)
     unknown = sorted(set(doc) - {"study"})
     if unknown:
         raise WarpisError(f"{file}: unknown key {unknown[0]!r} at the top level (a study file holds one [study] table)")
@@ -205,15 +202,12 @@ def study_from_dict(table: dict[str, Any], where: str, base: Path | None, thread
     description = table.get("description", "")
     if not isinstance(description, str):
         raise bad("description must be a string")
-    seed = _integer(table.get("seed", 0), "seed", bad)
-    if not 0 <= seed < 2**32:
-        raise bad(f"seed must be in [0, 2^32), got {seed}")
+    seed = limits.seed(table.get("seed", 0), f"{where}: seed")
     trials = _integer(table["trials"], "trials", bad)
-    if trials < MIN_TRIALS:
+    if trials < MIN_TRIALS:  # said with its reason; limits.count below bounds it above
         raise bad(f"trials must be at least {MIN_TRIALS} to give a variance interval, got {trials}")
-    n_values = _integer_list(table["n"], "n", bad)
-    if min(n_values) < 1:
-        raise bad(f"n takes positive sample counts, got {min(n_values)}")
+    trials = limits.count(trials, f"{where}: trials", minimum=MIN_TRIALS)
+    n_values = _count_list(table["n"], "n", where, bad)
 
     named = table["estimators"]
     if isinstance(named, dict):  # label → spec, in the file's order
@@ -248,9 +242,7 @@ def study_from_dict(table: dict[str, Any], where: str, base: Path | None, thread
             raise bad(f"unknown output {o!r} (valid: {', '.join(OUTPUTS)})")
     file_threads = table.get("threads")
     if file_threads is not None:
-        file_threads = _integer(file_threads, "threads", bad)
-        if file_threads < 1:
-            raise bad(f"threads must be at least 1, got {file_threads}")
+        file_threads = limits.count(file_threads, f"{where}: threads")
 
     sources = _string_list(table["scenes"], "scenes", bad)
     _no_duplicates(sources, "scenes", bad)
@@ -269,15 +261,17 @@ def study_from_dict(table: dict[str, Any], where: str, base: Path | None, thread
         if chosen is None:
             idx = list(range(len(scene.receivers)))
         else:
-            idx = _integer_list(chosen, f"receivers of {source!r}" if isinstance(receivers, dict) else "receivers",
-                                bad)
-            try:
-                select_receivers(scene, idx)
-            except WarpisError as exc:
-                raise bad(f"receivers: {exc}") from None
+            what = f"receivers of {source!r}" if isinstance(receivers, dict) else "receivers"
+            if not isinstance(chosen, list):
+                raise bad(f"{what} must be a non-empty list of integers, got {chosen!r}")
+            idx = [int(i) for i in limits.receiver_indices(chosen, f"{where}: {what}", len(scene.receivers))]
+            _no_duplicates(idx, what, bad)
         if any(s.name == scene.name for s in scenes):
             raise bad(f"two scenes are named {scene.name!r}; rows could not tell them apart")
         scenes.append(StudyScene(source, scene, idx, scene_digest(scene)))
+    # A cell's (receivers × trials) float64 estimates and the few same-sized temporaries of
+    # variance_interval must fit, or the run would die after writing its first files.
+    limits.memory(TRIAL_BYTES * trials * max(len(s.receivers) for s in scenes), f"{where}: trials")
 
     return Study(name=name, seed=seed, trials=trials, n=n_values, scenes=scenes, estimators=estimators,
                  predictions=predictions, outputs=tuple(o for o in OUTPUTS if o in outputs),
@@ -315,10 +309,11 @@ def _integer(value: Any, what: str, bad) -> int:
     return value
 
 
-def _integer_list(value: Any, what: str, bad) -> list[int]:
+def _count_list(value: Any, what: str, where: str, bad) -> list[int]:
+    """A non-empty list of distinct counts, each one a count the kernels can hold."""
     if not isinstance(value, list) or not value:
         raise bad(f"{what} must be a non-empty list of integers, got {value!r}")
-    out = [_integer(v, f"each entry of {what}", bad) for v in value]
+    out = [limits.count(v, f"{where}: {what}") for v in value]
     _no_duplicates(out, what, bad)
     return out
 
@@ -356,9 +351,26 @@ def _parse(text: str) -> float | None:
     return float(text) if text != "" else None
 
 
+# Columns every row written by compute_cell fills (predictions and z may be empty).
+REQUIRED = ("scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mean_stderr", "reference",
+            "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi", "seconds",
+            "warpis_version", "cell")
+
+
 def typed_row(raw: list[str]) -> dict[str, Any]:
-    """A CSV row (strings) → a dict of numbers, with ``predictions``/``z``/``inside`` as in verify.json."""
+    """A CSV row (strings) → a dict of numbers, with ``predictions``/``z``/``inside`` as in verify.json.
+
+    ValueError for a row compute_cell cannot have written (damaged on disk): wrong column
+    count, an empty required field, a field that is not a number, a malformed cell key.
+    """
+    if len(raw) != len(HEADER):
+        raise ValueError(f"{len(raw)} fields, expected {len(HEADER)}")
     d = dict(zip(HEADER, raw))
+    empty = [k for k in REQUIRED if d[k] == ""]
+    if empty:
+        raise ValueError(f"empty {empty[0]}")
+    if not re.fullmatch(r"[0-9a-f]{16}", d["cell"]):
+        raise ValueError(f"malformed cell key {d['cell']!r}")
     row: dict[str, Any] = {"scene": d["scene"], "receiver": int(d["receiver"]), "estimator": d["estimator"],
                            "n": int(d["n"]), "trials": int(d["trials"]), "seed": int(d["seed"]),
                            "warpis_version": d["warpis_version"], "cell": d["cell"]}
@@ -439,35 +451,63 @@ def compute_cell(study: Study, cell: Cell, caches: _Caches) -> list[list[str]]:
 
 
 def read_rows(path: Path) -> tuple[dict[str, list[list[str]]], str | None]:
-    """Rows of an earlier ``results.csv`` grouped by cell key, and a note when they are unusable."""
-    if not path.is_file():
-        return {}, None
+    """Rows of an earlier ``results.csv`` grouped by cell key, and a note on what could not be read.
+
+    Damage (a torn or edited file, bad bytes, a garbage header) costs only the rows it
+    touches: every row that parses is kept verbatim; the others are counted in the note
+    and their cells, no longer complete, are recomputed.  Rows of another warpis version
+    carry other cell keys and are dropped as cells no longer in the study.
+    """
     try:
-        with open(path, newline="", encoding="utf-8") as fh:
-            rows = list(csv.reader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        return {}, f"cannot read {path} ({exc}); recomputing every cell"
-    if not rows or rows[0] != HEADER:
-        return {}, f"{path} has other columns (another warpis version?); recomputing every cell"
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return {}, None
+    except OSError as exc:
+        return {}, f"cannot read {path} ({exc.strerror or exc}); recomputing every cell"
+    # Bytes that are not UTF-8 become lone surrogates, which no row warpis wrote holds: they
+    # make their row unreadable, not the file.
+    reader = csv.reader(io.StringIO(data.decode("utf-8", "surrogateescape"), newline=""))
     out: dict[str, list[list[str]]] = {}
-    for row in rows[1:]:
-        if len(row) == len(HEADER):
-            out.setdefault(row[-1], []).append(row)
-    return out, None
+    bad, header = 0, None
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error:  # e.g. a field over the csv module's size limit; the reader goes on
+            bad += 1
+            continue
+        if header is None:
+            header = row
+            continue
+        if not row:
+            continue
+        try:
+            "".join(row).encode("utf-8")
+            typed_row(row)
+        except (ValueError, TypeError):  # UnicodeEncodeError is a ValueError
+            bad += 1
+            continue
+        out.setdefault(row[-1], []).append(row)
+    return out, _damage_note(path, header, bad)
 
 
-def _finished(rows: list[list[str]] | None, cell: Cell) -> bool:
-    return rows is not None and [r[1] for r in rows] == [str(i) for i in cell.scene.receivers]
+def _damage_note(path: Path, header: list[str] | None, bad: int) -> str | None:
+    notes = []
+    if header is not None and header != HEADER:
+        notes.append("its header is not warpis's (damaged, or another version); rows are read by position")
+    if bad:
+        notes.append(f"{bad} unreadable row(s) will be recomputed")
+    return f"{path}: {'; '.join(notes)}" if notes else None
 
 
-def _replace(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically: a temporary file beside it, then os.replace."""
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", encoding="utf-8", newline="") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+def _finished(rows: list[list[str]] | None, cell: Cell, study: Study) -> bool:
+    """Whether ``rows`` are exactly the cell's: its receivers in order, and its scene, estimator, N,
+    trials and seed in every row (the key says so too, but a damaged field would not change the key)."""
+    if rows is None or [r[1] for r in rows] != [str(i) for i in cell.scene.receivers]:
+        return False
+    same = [cell.scene.name, cell.estimator.spec, str(cell.n), str(study.trials), str(study.seed)]
+    return all([r[0], r[2], r[3], r[4], r[5]] == same for r in rows)
 
 
 def csv_text(cells: list[Cell], done: dict[str, list[list[str]]]) -> str:
@@ -487,12 +527,12 @@ def write_results(out: Path, study: Study, cells: list[Cell], done: dict[str, li
     ``typed`` caches :func:`typed_row` of each finished cell's rows (filled as needed).
     """
     typed = {} if typed is None else typed
-    _replace(out / "results.csv", csv_text(cells, done))
+    outdir.write_text(out / "results.csv", csv_text(cells, done))
     for c in cells:
         if c.key in done and c.key not in typed:
             typed[c.key] = [typed_row(r) for r in done[c.key]]
     rows = [r for c in cells if c.key in done for r in typed[c.key]]
-    _replace(out / "summary.json", json.dumps(summary(study, cells, done, rows), indent=1) + "\n")
+    outdir.write_text(out / "summary.json", json.dumps(summary(study, cells, done, rows), indent=1) + "\n")
 
 
 # --------------------------------------------------------------------------- summaries
@@ -595,24 +635,20 @@ def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | No
     """Run every unfinished cell of ``study`` into ``out``; then figures and report.md.
 
     ``progress(done, total)`` counts the cells this run computes; ``log`` receives one-line
-    notes (cells skipped, rows dropped) as they happen.
+    notes (cells skipped, rows dropped, damaged rows) as they happen.  The folder is locked
+    for the whole run (:func:`warpis.outdir.locked`): a second run on it fails at once,
+    so no run ever rewrites results.csv without rows the other one finished.  A file that
+    cannot be written is a one-line WarpisError; the files already there stay intact.
     """
-    log = log or (lambda line: None)
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise WarpisError(f"{out}: the output must be a directory")
-    out.mkdir(parents=True, exist_ok=True)
+    with outdir.locked(Path(out)) as out:
+        return _run_locked(study, out, progress, log or (lambda line: None))
+
+
+def _run_locked(study: Study, out: Path, progress: Callable[[int, int], None] | None,
+                log: Callable[[str], None]) -> StudyRun:
     cells = study.cells()
-    previous, note = read_rows(out / "results.csv")
-    if note:
-        log(note)
-    done = {c.key: previous[c.key] for c in cells if _finished(previous.get(c.key), c)}
-    dropped = len(set(previous) - set(done))
+    done, dropped = _resume(study, cells, out / "results.csv", log)
     todo = [c for c in cells if c.key not in done]
-    if done:
-        log(f"skipping {len(done)} of {len(cells)} cells already finished in {out / 'results.csv'}")
-    if dropped:
-        log(f"dropping the rows of {dropped} cell(s) no longer in the study (or changed)")
     typed: dict[str, list[dict]] = {}
     write_results(out, study, cells, done, typed)
     if progress is not None:
@@ -625,9 +661,30 @@ def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | No
             progress(i + 1, len(todo))
     rows = [r for c in cells for r in typed[c.key]]
     run = StudyRun(out, len(cells), len(cells) - len(todo), len(todo), dropped, rows)
+    # Figures first, then the report that links them, then stale figures: a kill at any
+    # point leaves a report whose every link resolves.
     run.figures, run.notes = figures(study, rows, out / "figures")
-    _replace(out / "report.md", report(study, rows, run))
+    outdir.write_text(out / "report.md", report(study, rows, run))
+    remove_stale_figures(out / "figures", run.figures)
     return run
+
+
+def _resume(study: Study, cells: list[Cell], results: Path,
+            log: Callable[[str], None]) -> tuple[dict[str, list[list[str]]], int]:
+    """The finished cells of an earlier ``results.csv`` (key → rows, verbatim) and how many cells were dropped."""
+    previous, note = read_rows(results)
+    if note:
+        log(note)
+    done = {c.key: previous[c.key] for c in cells if _finished(previous.get(c.key), c, study)}
+    dropped = len(set(previous) - {c.key for c in cells})
+    incomplete = sum(c.key in previous and c.key not in done for c in cells)
+    if done:
+        log(f"skipping {len(done)} of {len(cells)} cells already finished in {results}")
+    if dropped:
+        log(f"dropping the rows of {dropped} cell(s) no longer in the study (or changed)")
+    if incomplete:
+        log(f"recomputing {incomplete} cell(s) whose rows in {results} are incomplete or damaged")
+    return done, dropped
 
 
 # --------------------------------------------------------------------------- figures and report
@@ -645,10 +702,6 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
 
     paths: list[Path] = []
     notes: list[str] = []
-    if fig_dir.is_dir():  # figures of an earlier version of the study would mislead
-        for old in fig_dir.iterdir():
-            if old.suffix in (".png", ".pdf") and old.name.startswith(FIGURE_PREFIXES):
-                old.unlink()
     if not study.outputs:
         return paths, notes
     at = _index(rows)
@@ -708,6 +761,21 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
     if "calibration" in study.outputs and study.predictions:
         paths += plots.calibration_plot(rows, fig_dir, stem="calibration")
     return paths, notes
+
+
+def remove_stale_figures(fig_dir: Path, keep: list[Path]) -> None:
+    """Delete figures of an earlier version of the study (they would mislead); run after report.md."""
+    if not fig_dir.is_dir():
+        return
+    names = {p.name for p in keep}
+    for old in fig_dir.iterdir():
+        if old.suffix in (".png", ".pdf") and old.name.startswith(FIGURE_PREFIXES) and old.name not in names:
+            try:
+                old.unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as exc:
+                raise WarpisError(f"{old}: cannot remove a stale figure: {exc.strerror or exc}") from None
 
 
 def _est(study: Study, spec: str) -> str:

@@ -134,32 +134,47 @@ def rescale(x: float, lo: float, hi: float) -> float:
 
 
 EDGE_SLACK = wp.constant(1.0e-6)
+# Two emitter crossings of one ray closer than this fraction of their distance are one
+# crossing seen through two triangles (a shared edge): relative, so no scene size enters.
+CROSSING_TOLERANCE = wp.constant(1.0e-5)
+
+
+@wp.func
+def to64(v: wp.vec3) -> wp.vec3d:
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
 
 
 @wp.func
 def ray_triangle(o: wp.vec3, w: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
     """Distance t > 0 at which the ray (o, ω) crosses triangle abc, or −1 (Möller–Trumbore).
 
-    Edges are widened by ``EDGE_SLACK`` in barycentric terms: the test is not watertight,
-    and without slack about 1e-6 of the points sampled on a light fall between its
-    triangles; the duplicate a widened edge can cause is removed by ``light_pdf``.
+    In float64: for a small emitter triangle seen from afar at a grazing angle, float32
+    Möller–Trumbore misplaces the crossing by 1e-3 of the triangle (its determinant is
+    tiny) and loses crossings of directions the light technique itself produced, which
+    then report pdf 0.  Edges are still widened by ``EDGE_SLACK`` in barycentric terms
+    (the test is not watertight); the duplicate a widened edge can cause is removed by
+    ``light_pdf``.
     """
-    e1 = b - a
-    e2 = c - a
-    pv = wp.cross(w, e2)
+    o64 = to64(o)
+    w64 = to64(w)
+    a64 = to64(a)
+    e1 = to64(b) - a64
+    e2 = to64(c) - a64
+    pv = wp.cross(w64, e2)
     det = wp.dot(e1, pv)
-    if det == 0.0:
+    if det == wp.float64(0.0):
         return -1.0
-    inv = 1.0 / det
-    tv = o - a
+    inv = wp.float64(1.0) / det
+    tv = o64 - a64
     bu = wp.dot(tv, pv) * inv
-    if bu < -EDGE_SLACK or bu > 1.0 + EDGE_SLACK:
+    slack = wp.float64(EDGE_SLACK)
+    if bu < -slack or bu > wp.float64(1.0) + slack:
         return -1.0
     qv = wp.cross(tv, e1)
-    bv = wp.dot(w, qv) * inv
-    if bv < -EDGE_SLACK or bu + bv > 1.0 + EDGE_SLACK:
+    bv = wp.dot(w64, qv) * inv
+    if bv < -slack or bu + bv > wp.float64(1.0) + slack:
         return -1.0
-    t = wp.dot(e2, qv) * inv
+    t = float(wp.dot(e2, qv) * inv)
     return wp.where(t > 0.0, t, -1.0)
 
 
@@ -169,32 +184,37 @@ def light_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPo
 
     One traversal of the emitter triangles' BVH visits each triangle whose box the ray
     meets; each one the ray actually crosses adds its density.  Crossings within
-    ``ray_eps`` of one already counted are the same crossing (a ray through an edge
-    shared by two triangles meets both at one point) and add nothing.
+    ``CROSSING_TOLERANCE`` × t of one already counted *through a face of the same
+    facing* are the same crossing (a ray through an edge shared by two triangles meets
+    both at one point) and add nothing.  The facing matters: at a sphere light's
+    silhouette the ray enters through a front face and leaves through a back face at
+    almost the same t, two crossings that both count.
     """
     pdf = float(0.0)
     query = wp.bvh_query_ray(scene.emitter_bvh, sp.p, w)
     k = wp.int32(0)
-    seen = Crossings()
+    seen = Crossings()  # distances, negated for back-facing crossings
     count = wp.int32(0)
     while wp.bvh_query_next(query, k):
         a = emitter_corner(scene, k, 0)
         b = emitter_corner(scene, k, 1)
         c = emitter_corner(scene, k, 2)
         t = ray_triangle(sp.p, w, a, b, c)
+        nrm = wp.cross(b - a, c - a)
+        front = wp.dot(nrm, w) < 0.0
+        signed = wp.where(front, t, -t)
         repeat = bool(False)
         for i in range(count):
-            if wp.abs(seen[i] - t) <= scene.ray_eps:
+            if wp.abs(seen[i] - signed) <= CROSSING_TOLERANCE * t:
                 repeat = True
         if t > 0.0 and not repeat:
             if count < MAX_CROSSINGS:
-                seen[count] = t
+                seen[count] = signed
                 count += 1
             radiance = scene.tri_emission[scene.emitter_tri[k]]
-            nrm = wp.cross(b - a, c - a)
             if tech == LIGHT_SOLID_ANGLE:
                 # Only triangles whose front faces the receiver can be chosen.
-                if wp.dot(nrm, w) < 0.0 and table.total[sp.receiver] > wp.float64(0.0):
+                if front and table.total[sp.receiver] > wp.float64(0.0):
                     pdf = pdf + radiance / float(table.total[sp.receiver])
             else:
                 area_density = 1.0 / scene.total_area

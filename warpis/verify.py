@@ -11,9 +11,9 @@ atomically after every estimator × N, so an interrupted run keeps what it finis
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import outdir
 from .engine import run_trials, select_receivers
 from .errors import WarpisError
 from .estimators import Estimator, parse_estimator
@@ -102,7 +103,11 @@ def verify(
     out: Path | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> VerifyResult:
-    """Measure and predict every cell; write ``out/verify.json`` as cells finish (if ``out``)."""
+    """Measure and predict every cell; write ``out/verify.json`` as cells finish (if ``out``).
+
+    ``out`` is locked (:func:`warpis.outdir.locked`) once the arguments have been checked,
+    so bad input creates no folder and two runs never write one folder together.
+    """
     techs = tuple(techniques) if techniques else default_techniques(scene)
     ests = [parse_estimator(e) for e in estimators] if estimators else default_estimators(techs)
     for est in ests:
@@ -111,6 +116,13 @@ def verify(
     if trials < 4:
         raise WarpisError(f"--trials must be at least 4 to give a variance interval (got {trials})")
     rx = select_receivers(scene, receivers if receivers is not None else default_receivers(scene))
+    with outdir.locked(out) if out is not None else contextlib.nullcontext():
+        return _measure(scene, techs, ests, n_values, trials, seed, rx, threads, out, progress)
+
+
+def _measure(scene: Scene, techs: tuple[str, ...], ests: list[Estimator], n_values: Sequence[int], trials: int,
+             seed: int, rx: np.ndarray, threads: int | None, out: Path | None,
+             progress: Callable[[int, int], None] | None) -> VerifyResult:
     start = time.perf_counter()
     refs = {r.index: r for r in reference(scene, rx)}
     result = VerifyResult(scene.name, trials, seed, techs)
@@ -159,11 +171,20 @@ def _row(scene: Scene, r: int, est: Estimator, n: int, stats, i: int, mom: Momen
 
 
 def write_json(out: Path, result: VerifyResult) -> None:
-    """Write ``verify.json`` atomically (a temporary file, then a rename)."""
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "verify.json.tmp"
-    tmp.write_text(json.dumps(result.as_json(), indent=1))
-    os.replace(tmp, out / "verify.json")
+    """Write ``verify.json`` atomically (a unique temporary file, then a rename)."""
+    outdir.make_dir(out)
+    outdir.write_text(out / "verify.json", json.dumps(result.as_json(), indent=1))
+
+
+def write_outputs(out: Path, result: VerifyResult, command: str) -> None:
+    """``verify.md`` and the figures beside ``verify.json``, each replaced atomically."""
+    from . import plots
+
+    outdir.make_dir(out)
+    outdir.write_text(out / "verify.md", markdown(result, command))
+    plots.calibration_plot(result.rows, out)
+    for r in sorted({row["receiver"] for row in result.rows}):
+        plots.convergence_plot(result.rows, r, out)
 
 
 # --------------------------------------------------------------------------- summary
