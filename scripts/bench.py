@@ -5,8 +5,9 @@
 
 For each scene and each of the estimators ``independent:single:light-area`` and
 ``jittered:balance:light-area+cosine`` it times :func:`warpis.engine.run_trials` and
-:func:`warpis.baseline.baseline_trials` (the same estimator in numpy, rays cast with
-trimesh's Embree intersector) on the same receivers (all of the scene's) and the same N.
+:func:`baseline.baseline_trials` (``scripts/baseline.py``: the same estimator in numpy,
+rays cast with trimesh's Embree intersector) on the same receivers (all of the scene's)
+and the same N.
 The rate is integrand evaluations per second, N per trial (one shadow ray each; the
 emitter crossings that light-sampling pdfs need are not counted):
 R × M × N / wall-clock seconds of the call, output array included.
@@ -50,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 import warpis
-from warpis.baseline import BASELINE_ESTIMATORS, baseline_scene, baseline_trials
+from baseline import BASELINE_ESTIMATORS, baseline_scene, baseline_trials  # scripts/baseline.py, beside this file
 from warpis.engine import default_threads, run_trials
 
 DEFAULT_SCENES = ("occluded-quad", "heavy-occluder")

@@ -1,5 +1,9 @@
 """A numpy + Embree reference implementation of two warpis estimators, for benchmarks.
 
+A script module, not part of the installed package: ``scripts/bench.py`` imports it
+from this folder, ``tests/test_baseline.py`` by putting this folder on ``sys.path``.
+It needs the optional ``embreex`` (``pip install -e ".[bench]"``).
+
 ``independent:single:light-area`` and ``jittered:balance:light-area+cosine`` written
 the obvious way without Warp: per receiver, the (trials × samples) primary samples are
 drawn with numpy's :class:`~numpy.random.Generator`, mapped to directions with the same
@@ -8,10 +12,11 @@ trimesh's Embree intersector (:class:`trimesh.ray.ray_pyembree.RayMeshIntersecto
 package ``embreex``):
 
 * the shadow ray of each sample is one first-hit query (``intersects_first``) on the
-  whole scene from the shading point p = x + ε·n; Le is the radiance of the triangle hit
-  when the ray meets its front face (dot((v1 − v0) × (v2 − v0), ω) < 0), else 0;
+  whole scene along ω from the receiver x, starting where it leaves the receiver's
+  self-hit slab (x + δ/(n·ω)·ω, as :mod:`warpis.integrand`); Le is the radiance of the
+  triangle hit when the ray meets its front face (dot((v1 − v0) × (v2 − v0), ω) < 0), else 0;
 * the light-area pdf at a direction is the sum over every emitter triangle the ray
-  (p, ω) crosses of (1/A_total)·t²/|cos θ_y|, as in :func:`warpis.techniques.light_pdf`;
+  (x, ω) crosses of (1/A_total)·t²/|cos θ_y|, as in :func:`warpis.techniques.light_pdf`;
   the crossings come from a second intersector built on the emitter triangles alone,
   queried with ``intersects_location(multiple_hits=True)``.
 
@@ -34,12 +39,12 @@ import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from .engine import default_threads, select_receivers
-from .errors import WarpisError
-from .estimators import parse_estimator
-from .patterns import grid_shape
-from .scene import MATERIALS, RAY_EPSILON, Scene
-from .testing import orthonormal_frame
+from warpis.engine import default_threads, select_receivers
+from warpis.errors import WarpisError
+from warpis.estimators import parse_estimator
+from warpis.patterns import grid_shape
+from warpis.scene import MATERIALS, Scene
+from warpis.testing import orthonormal_frame
 
 __all__ = ["BASELINE_ESTIMATORS", "BaselineScene", "baseline_scene", "baseline_trials"]
 
@@ -68,7 +73,6 @@ class BaselineScene:
     emitter_normal: np.ndarray  # (E, 3) unit normals of the emitter triangles
     area_cdf: np.ndarray  # (E + 1,) 0 … 1
     total_area: float
-    ray_eps: float
 
     @classmethod
     def build(cls, scene: Scene) -> "BaselineScene":
@@ -93,7 +97,7 @@ class BaselineScene:
             scene=scene, everything=everything, emitters=emitters, front=front,
             emission=np.asarray(scene.emission, dtype=np.float64), corners=corners,
             emitter_normal=e_front / np.linalg.norm(e_front, axis=1, keepdims=True),
-            area_cdf=cdf, total_area=float(areas.sum()), ray_eps=float(RAY_EPSILON * scene.diagonal),
+            area_cdf=cdf, total_area=float(areas.sum()),
         )
 
     def warm_up(self) -> None:
@@ -105,9 +109,8 @@ class BaselineScene:
 
     # ----------------------------------------------------------------------- rays
 
-    def incident_radiance(self, p: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """Le of the first surface hit by each ray (p, w[i]): front-face radiance, else 0."""
-        origins = np.broadcast_to(p, w.shape)
+    def incident_radiance(self, origins: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """Le of the first surface hit by each ray (origins[i], w[i]): front-face radiance, else 0."""
         hit = self.everything.intersects_first(origins, w)
         found = hit >= 0
         le = np.zeros(len(w))
@@ -144,7 +147,8 @@ def baseline_scene(scene: Scene | BaselineScene) -> BaselineScene:
 
 @dataclass
 class _Receiver:
-    p: np.ndarray  # shading point x + ε n
+    p: np.ndarray  # the receiver x
+    slab: float  # self-hit slab height: rays start where they leave it (integrand.py)
     n: np.ndarray
     material: int
     albedo: float
@@ -158,7 +162,7 @@ class _Receiver:
         n = np.asarray(rx.normals[r], dtype=np.float64)
         v = np.asarray(rx.view[r], dtype=np.float64)
         axis = 2.0 * np.dot(n, v) * n - v
-        return cls(p=rx.positions[r] + bs.ray_eps * n, n=n, material=int(rx.material[r]),
+        return cls(p=rx.positions[r], slab=float(bs.scene.slab[r]), n=n, material=int(rx.material[r]),
                    albedo=float(rx.albedo[r]), exponent=float(rx.exponent[r]),
                    lobe_axis=axis / np.linalg.norm(axis), frame=np.stack(orthonormal_frame(n)))
 
@@ -168,10 +172,10 @@ class _Receiver:
         rho = self.brdf(w)
         live = np.flatnonzero((cos_n > 0.0) & (rho > 0.0))
         f = np.zeros(len(w))
-        if len(live) == len(w):
-            return bs.incident_radiance(self.p, w) * rho * cos_n
         if len(live):
-            f[live] = bs.incident_radiance(self.p, w[live]) * rho[live] * cos_n[live]
+            wl, cl = w[live], cos_n[live]
+            origins = self.p + wl * (self.slab / cl)[:, None]
+            f[live] = bs.incident_radiance(origins, wl) * rho[live] * cl
         return f
 
     def brdf(self, w: np.ndarray) -> np.ndarray:
