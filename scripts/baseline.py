@@ -42,9 +42,9 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 from warpis.engine import default_threads, select_receivers
 from warpis.errors import WarpisError
 from warpis.estimators import parse_estimator
-from warpis.patterns import grid_shape
-from warpis.scene import MATERIALS, Scene
+from warpis.scene import Scene
 from warpis.testing import orthonormal_frame
+from warpis.vocabulary import MATERIALS, grid_shape
 
 __all__ = ["BASELINE_ESTIMATORS", "BaselineScene", "baseline_scene", "baseline_trials"]
 
@@ -56,8 +56,8 @@ BASELINE_ESTIMATORS = ("independent:single:light-area", "jittered:balance:light-
 CHUNK_SAMPLES = 1 << 16
 
 _BELOW_ONE = float(np.nextafter(1.0, 0.0))
-_LAMBERT = MATERIALS["lambert"]
-_PHONG = MATERIALS["phong"]
+_LAMBERT = MATERIALS["lambert"].code
+_PHONG = MATERIALS["phong"].code
 
 
 @dataclass

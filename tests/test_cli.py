@@ -226,3 +226,16 @@ def test_other_bad_arguments(args, cli):
     """Bad arguments to the other commands (receiver out of range, unknown scene,
     unknown option, zero samples) exit 2 with one error line."""
     _one_error_line(cli(*args))
+
+
+def test_estimator_help_lists_the_registered_vocabulary(cli):
+    """`warpis estimate --help` and `warpis verify --help` name every registered pattern,
+    combiner and technique with its one-line description."""
+    from warpis.vocabulary import COMBINERS, PATTERNS, TECHNIQUES
+
+    for command in ("estimate", "verify"):
+        result = cli(command, "--help")
+        assert result.status == 0
+        for registry in (PATTERNS, COMBINERS, TECHNIQUES):
+            for entry in registry.values():
+                assert f"  {entry.name} " in result.out and entry.description in result.out, (command, entry.name)

@@ -22,18 +22,25 @@ from scipy.stats import norm
 
 import warpis
 from warpis.engine import run_trials
-from warpis.estimators import COMBINERS, Estimator, parse_estimator
-from warpis.patterns import PATTERNS
+from warpis.estimators import Estimator, parse_estimator
 from warpis.reference import reference
 from warpis.stats import variance_interval
 from warpis.techniques import direction_pdf, sample_directions
 from warpis.integrand import evaluate_integrand
+from warpis.verify import default_techniques
+from warpis.vocabulary import COMBINERS, MATERIALS, PATTERNS, TECHNIQUES
 
 TRIALS = 4000
 N = 12  # divisible by 2 and 3, even per technique: every combination below can take it
 ALPHA = 1e-3
-DIFFUSE_TECHNIQUES = ("uniform", "cosine", "light-area", "light-power", "light-solid-angle")
-BLIND = ("uniform", "cosine")
+# The lobes of glossy materials: sampled only on scenes with such receivers.
+LOBES = {m.bsdf_technique for m in MATERIALS.values() if not m.diffuse}
+# BSDF-blind techniques: neither the lights nor a lobe.
+BLIND = tuple(t for t, e in TECHNIQUES.items() if not e.light and t not in LOBES)
+# Representative sets for the combiners of several techniques; "BSDF" stands for the
+# scene's BSDF sampling (cosine, or the glossy receivers' lobe).
+SETS = (("light-area", "BSDF"), ("light-solid-angle", "BSDF"), ("light-power", "uniform"),
+        ("light-area", "light-solid-angle", "BSDF"))
 # Receivers where BSDF-blind sampling meets the light often enough for a normal mean.
 BLIND_RECEIVERS = {"veach-plates": [2, 3, 6, 7, 11, 15]}
 # veach-plates' 1280 emitter triangles make every light pdf a deep BVH walk: the other
@@ -43,20 +50,29 @@ RECEIVERS = {"veach-plates": [0, 3, 5, 10, 12, 15]}
 
 
 def scene_techniques(scene: warpis.Scene) -> tuple[str, ...]:
-    glossy = (scene.receivers.material == 2).any()
-    return DIFFUSE_TECHNIQUES + (("phong",) if glossy else ())
+    """Every registered technique, the lobes only where the scene has their material."""
+    present = {MATERIALS.by_code(c).bsdf_technique for c in np.unique(scene.receivers.material)}
+    return tuple(t for t in TECHNIQUES if t not in LOBES or t in present)
+
+
+def technique_sets(scene: warpis.Scene) -> list[tuple[str, ...]]:
+    """``SETS`` for this scene, plus each technique that no set names on any scene (a new
+    entry) beside light-area."""
+    bsdf = default_techniques(scene)[1]
+    sets = [tuple(bsdf if t == "BSDF" else t for t in s) for s in SETS]
+    covered = {t for s in SETS for t in s} | {m.bsdf_technique for m in MATERIALS.values()}
+    return sets + [(t, "light-area") for t in scene_techniques(scene) if t not in covered]
 
 
 def estimators_for(scene: warpis.Scene) -> list[Estimator]:
-    """Every pattern × every combiner over a representative set of technique tuples."""
-    techs = scene_techniques(scene)
-    bsdf = "phong" if "phong" in techs else "cosine"
-    sets = [("light-area", bsdf), ("light-solid-angle", bsdf), ("light-power", "uniform"),
-            ("light-area", "light-solid-angle", bsdf)]
+    """Every pattern × every unbiased combiner: one-technique combiners with every
+    technique, the others over the representative technique sets."""
+    techs, sets = scene_techniques(scene), technique_sets(scene)
+    unbiased = [c for c in COMBINERS.values() if c.unbiased]
     out = []
     for pattern in PATTERNS:
-        out += [Estimator(pattern, "single", (t,)) for t in techs]
-        out += [Estimator(pattern, c, s) for c in ("mixture", "balance", "power") for s in sets]
+        out += [Estimator(pattern, c.name, (t,)) for c in unbiased if not c.several for t in techs]
+        out += [Estimator(pattern, c.name, s) for c in unbiased if c.several for s in sets]
     return out
 
 
@@ -290,8 +306,6 @@ def test_invalid_estimators_get_one_line_errors_that_list_what_is_valid(spec, n,
 
 def test_every_combination_of_the_vocabulary_parses_or_explains():
     """Every pattern × combiner × 1–2 techniques either runs or gives a one-line reason."""
-    from warpis.techniques import TECHNIQUES
-
     for pattern, combiner in itertools.product(PATTERNS, COMBINERS):
         for k in (1, 2):
             for techs in itertools.combinations(TECHNIQUES, k):

@@ -1,8 +1,9 @@
 """Ground truth: importance-sampled estimates against the closed form and the quadrature.
 
-Every technique that applies to irradiance receivers (uniform, cosine, light-area,
-light-power, light-solid-angle) estimates F at receivers whose reference is exact
-(``warpis.reference.reference`` → method "closed-form": Lambert's formula, no occluder):
+Every technique that applies to irradiance receivers (every registered technique but
+the glossy lobes: uniform, cosine, light-area, light-power, light-solid-angle) estimates
+F at receivers whose reference is exact (``warpis.reference.reference`` → method
+"closed-form": Lambert's formula, no occluder):
 lights at several distances and tilts, one partly below the receiver's horizon, one
 almost edge-on, one seen from behind (F = 0).  Each estimate is the mean of 1024 trials
 of ``independent:single:T`` with N = 1024 (about 10⁶ samples); its standard error comes
@@ -38,9 +39,12 @@ from warpis.engine import run_trials
 from warpis.integrand import evaluate_integrand
 from warpis.reference import reference
 from warpis.scene import load_scene
+from warpis.vocabulary import MATERIALS, TECHNIQUES as REGISTERED
 from conftest import write_scene
 
-TECHNIQUES = ("uniform", "cosine", "light-area", "light-power", "light-solid-angle")
+# Every technique that applies to irradiance receivers: all but the glossy materials' lobes.
+LOBES = {m.bsdf_technique for m in MATERIALS.values() if not m.diffuse}
+TECHNIQUES = tuple(t for t in REGISTERED if t not in LOBES)
 N, TRIALS = 1024, 1024
 Z_MAX = 4.0
 

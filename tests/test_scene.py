@@ -29,7 +29,8 @@ from conftest import BUNDLED, floor_entry, light_entry, quad, run_warpis, write_
 import warpis
 from warpis.errors import WarpisError
 from warpis.integrand import incident_radiance
-from warpis.scene import MATERIALS, SELF_HIT_SLAB, SceneData, load_scene
+from warpis.scene import SELF_HIT_SLAB, SceneData, load_scene
+from warpis.vocabulary import MATERIALS
 
 MESHES = Path(str(resources.files("warpis.meshes")))
 
@@ -168,7 +169,7 @@ def test_bundled_receivers_and_materials(bundled_scene):
         n = np.array(spec["normal"], dtype=float)
         np.testing.assert_allclose(rx.normals[rows], np.tile(n / np.linalg.norm(n), (len(points), 1)), atol=1e-12)
         mat = spec.get("material", doc.get("material"))
-        assert np.all(rx.material[rows] == MATERIALS[mat["type"]])
+        assert np.all(rx.material[rows] == MATERIALS[mat["type"]].code)
         np.testing.assert_allclose(rx.albedo[rows], mat.get("albedo", 1.0))
         if mat["type"] == "phong":
             np.testing.assert_allclose(rx.exponent[rows], mat["exponent"])
@@ -265,7 +266,7 @@ def test_receiver_groups_with_materials(tmp_path):
     assert list(rx.group) == [0, 0, 1, 2]
     assert rx.group_names[:2] == ["diffuse", "glossy"]
     assert [rx.material_name(i) for i in range(4)] == ["lambert", "lambert", "phong", "irradiance"]
-    codes = [MATERIALS[m] for m in ("lambert", "lambert", "phong", "irradiance")]
+    codes = [MATERIALS[m].code for m in ("lambert", "lambert", "phong", "irradiance")]
     np.testing.assert_array_equal(rx.material, codes)
     np.testing.assert_allclose(rx.albedo, [0.25, 0.25, 0.5, 1.0])
     assert rx.exponent[2] == 20.0
@@ -749,3 +750,30 @@ def test_veach_plates_see_every_light(loaded_scenes):
         to_centre = np.linalg.norm(centres - origin, axis=1)
         # a tessellated unit sphere lies between its inscribed and circumscribed radii
         assert np.all(dist <= to_centre - 0.9 * radii) and np.all(dist >= to_centre - radii * 1.0001)
+
+
+# An example value for every key a material table may hold (scene.MATERIAL_PARAMETERS).
+MATERIAL_EXAMPLES = {"albedo": 0.5, "exponent": 20.0, "view": [0.0, -3.0, 4.0]}
+
+
+@pytest.mark.parametrize("name", MATERIALS)
+def test_every_registered_material_loads_and_requires_its_keys(name, tmp_path):
+    """Each material of the registry loads from a scene file with its keys (the receivers
+    get its code, and its name back), refuses a key it does not have, and names each
+    required key that is left out in a one-line error."""
+    material = MATERIALS[name]
+    assert set(material.keys) <= set(MATERIAL_EXAMPLES), "add an example value for the new key"
+    table = {"type": name} | {k: MATERIAL_EXAMPLES[k] for k in material.keys}
+    rx = load_scene(write_scene(tmp_path / "ok", material=table)).receivers
+    assert np.all(rx.material == material.code) and rx.material_name(0) == name
+    assert rx.material_of(0) is material
+    if "albedo" in material.keys:
+        assert rx.albedo[0] == 0.5
+    other = sorted(set(MATERIAL_EXAMPLES) - set(material.keys))
+    if other:
+        with pytest.raises(WarpisError, match=f"unknown key '{other[0]}'"):
+            load_scene(write_scene(tmp_path / "extra", material=table | {other[0]: MATERIAL_EXAMPLES[other[0]]}))
+    for key in material.required:
+        with pytest.raises(WarpisError, match=f"missing key '{key}'") as err:
+            load_scene(write_scene(tmp_path / f"no-{key}", material={k: v for k, v in table.items() if k != key}))
+        assert "\n" not in str(err.value)

@@ -2,11 +2,11 @@
 
 Chi-square tests (``warpis.testing.ChiSquareTest``): 10⁶ primary samples u from numpy's
 ``Generator(seed)`` go through ``sample_directions``; the histogram of the directions is
-held against the expected counts from ``direction_pdf``, for every technique (uniform,
-cosine, phong, light-area, light-power, light-solid-angle) at two receivers of every
-bundled scene (phong on veach-plates, the only scene with phong receivers), and the
-light techniques at two receivers of a scene written here whose tilted quad light
-crosses the receivers' tangent planes.
+held against the expected counts from ``direction_pdf``, for every technique of
+``vocabulary.TECHNIQUES`` at two receivers of every bundled scene (phong, whose cases
+are listed apart, on veach-plates, the only scene with phong receivers), and the light
+techniques at two receivers of a scene written here whose tilted quad light crosses
+the receivers' tangent planes.
 
 *Windows.*  The test bins the whole sphere on a 40 × 80 grid (uniform in cos θ and φ).
 Lights of 10⁻⁴–10⁻¹ sr then fall into a few cells, whose expected counts (tens of
@@ -62,6 +62,7 @@ from conftest import write_scene
 from warpis.stats import sidak_threshold
 from warpis.techniques import direction_pdf, light_table, sample_directions
 from warpis.testing import ChiSquareTest, orthonormal_frame
+from warpis.vocabulary import TECHNIQUES
 from warpis.warps import square_to_spherical_triangle
 
 FAMILY_ALPHA = 1e-3
@@ -234,8 +235,7 @@ def _window(scene, r: int, technique: str, spec) -> Window:
 
 # --------------------------------------------------------------------------- the cases
 
-HEMISPHERE = ("uniform", "cosine")
-LIGHTS = ("light-area", "light-power", "light-solid-angle")
+LIGHTS = tuple(t for t, e in TECHNIQUES.items() if e.light)
 # (scene, receivers, emitter meshes → windows).  Receivers: occluded-quad lit (0) and in
 # umbra (4); heavy-occluder lit (1) and shadowed (5); two-lights right under the
 # small light (1) and beside it (5); veach-plates plate-2 (5, e = 50), in a window on
@@ -249,9 +249,16 @@ SCENE_CASES = [
     ("veach-plates", (14,), [("light", 4, ())]),  # the smallest sphere from the glossiest plate
     ("horizon-quad", (0, 1), [("light", 0, ())]),
 ]
-# Phong: plate-1 (e = 10) on the plain sphere, narrower lobes in a window outside which
-# they hold 1e-3 of their mass.
-PHONG_CASES = [(0, "sphere"), (0, ("lobe", 1e-3)), (5, ("lobe", 1e-3)), (9, ("lobe", 1e-3)), (14, ("lobe", 1e-3))]
+# Techniques tested only at cases of their own, (scene, receiver, window): phong on
+# plate-1 (e = 10) on the plain sphere, narrower lobes in a window outside which they
+# hold 1e-3 of their mass.
+OWN_CASES = {
+    "phong": [("veach-plates", r, w) for r, w in
+              [(0, "sphere"), (0, ("lobe", 1e-3)), (5, ("lobe", 1e-3)), (9, ("lobe", 1e-3)), (14, ("lobe", 1e-3))]],
+}
+# Every other technique that samples the hemisphere about the normal is tested on the
+# plain sphere at each receiver of SCENE_CASES (horizon-quad excepted: it is about lights).
+HEMISPHERE = tuple(t for t, e in TECHNIQUES.items() if not e.light and t not in OWN_CASES)
 
 
 def _cases() -> list[tuple[str, int, str, object]]:
@@ -261,7 +268,7 @@ def _cases() -> list[tuple[str, int, str, object]]:
             if name != "horizon-quad":
                 out += [(name, r, t, "sphere") for t in HEMISPHERE]
             out += [(name, r, t, w) for t in LIGHTS for w in windows]
-    out += [("veach-plates", r, "phong", w) for r, w in PHONG_CASES]
+    out += [(name, r, t, w) for t, cases in OWN_CASES.items() for name, r, w in cases]
     return out
 
 
@@ -410,7 +417,7 @@ def test_chi2_bites_light_area_samples_against_light_power_pdf(scenes):
 
 PDF_CASES = [(name, r, tech) for name, receivers, _ in SCENE_CASES for r in receivers
              for tech in ((HEMISPHERE if name != "horizon-quad" else ()) + LIGHTS
-                          + (("phong",) if name == "veach-plates" else ()))]
+                          + tuple(t for t, cases in OWN_CASES.items() if name in {c[0] for c in cases}))]
 
 
 @pytest.mark.parametrize(("name", "r", "technique"), PDF_CASES)
@@ -480,7 +487,8 @@ def _crossings(p: np.ndarray, w: np.ndarray, tris: np.ndarray):
 
 
 def _expected_light_pdfs(scene, r: int, w: np.ndarray) -> dict[str, float]:
-    """Light pdfs at direction w summed over every crossing, in float64 numpy."""
+    """Light pdfs at direction w summed over every crossing, in float64 numpy (a light
+    technique added to the registry needs its line here: the tests below ask for each)."""
     p = _shading_point(scene, r)
     tris = scene.triangle_vertices(scene.emitters)
     t, cos, front, k = _crossings(p, w, tris)
@@ -513,6 +521,7 @@ def test_light_pdfs_sum_over_sphere_crossings(scenes):
                 exp = _expected_light_pdfs(scene, r, w)
                 assert exp["crossings"] == 2
                 for tech in LIGHTS:
+                    assert tech in exp, f"no numpy pdf for light technique {tech!r} in _expected_light_pdfs"
                     got = direction_pdf(scene, r, tech, w[None])[0]
                     assert got == pytest.approx(exp[tech], rel=2e-4), (r, mesh, tech)
 
@@ -527,6 +536,7 @@ def test_light_pdfs_sum_over_two_lights_on_one_ray(scenes):
         exp = _expected_light_pdfs(scene, r, w)
         assert exp["crossings"] == 2
         for tech in LIGHTS:
+            assert tech in exp, f"no numpy pdf for light technique {tech!r} in _expected_light_pdfs"
             assert direction_pdf(scene, r, tech, w[None])[0] == pytest.approx(exp[tech], rel=2e-4), tech
 
 

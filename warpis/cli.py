@@ -17,6 +17,7 @@ from typing import Any, NoReturn
 
 from . import limits
 from .errors import WarpisError
+from .vocabulary import estimator_help
 
 
 class _Parser(argparse.ArgumentParser):
@@ -332,8 +333,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"warpis {_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
-    def scene_command(name: str, help: str) -> argparse.ArgumentParser:
-        c = sub.add_parser(name, help=help, description=help)
+    def scene_command(name: str, help: str, epilog: str | None = None) -> argparse.ArgumentParser:
+        # Raw text keeps the epilog's one line per vocabulary entry.
+        raw = {"formatter_class": argparse.RawDescriptionHelpFormatter} if epilog else {}
+        c = sub.add_parser(name, help=help, description=help, epilog=epilog, **raw)
         c.add_argument("scene", help="a bundled scene's name (see 'warpis scenes') or a scene TOML path")
         c.add_argument("--device", default="cpu", help="Warp device: cpu (default) or cuda[:N]")
         c.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -357,7 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                   "stops short of --rel-error with a warning (default 1048576)")
     c.set_defaults(func=cmd_reference)
 
-    c = scene_command("estimate", "run M independent trials of one estimator; mean, variance and its interval")
+    c = scene_command("estimate", "run M independent trials of one estimator; mean, variance and its interval",
+                      epilog=estimator_help())
     c.add_argument("--estimator", required=True, help="PATTERN:COMBINER:TECH[+TECH...], "
                                                       "e.g. jittered:balance:light-area+cosine")
     c.add_argument("--n", type=_positive, required=True, help="samples per estimate (N)")
@@ -367,7 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores; results do not depend on it)")
     c.set_defaults(func=cmd_estimate)
 
-    c = scene_command("verify", "hold measured variances against the seed's equations, cell by cell")
+    c = scene_command("verify", "hold measured variances against the seed's equations, cell by cell",
+                      epilog=estimator_help())
     c.add_argument("--techniques", help="technique set A+B (default: light-area+cosine, or "
                                         "light-solid-angle+phong for glossy receivers)")
     c.add_argument("--estimators", help="comma-separated estimator specs (default: every estimator the set allows)")

@@ -5,8 +5,8 @@ An estimator is spelled ``PATTERN:COMBINER:TECH[+TECH...]``, e.g.
 from N samples; the kernel computes a whole trial per thread (sampling, casting,
 weighting and the sum over N), so no per-sample Python and no R × M × N arrays.
 
-Combiners (seed notation: g_k the pdf of technique k, ḡ their average, N_g techniques,
-m = N/N_g samples per technique):
+Combiners (entries of ``vocabulary.COMBINERS``; seed notation: g_k the pdf of technique
+k, ḡ their average, N_g techniques, m = N/N_g samples per technique):
 
 ``single``   IS with one technique: (1/N) Σ f/g.
 ``mixture``  IS from ḡ itself (the seed's averaged-pdf IS): each sample picks a technique
@@ -26,19 +26,18 @@ import warp as wp
 from . import limits
 from .errors import WarpisError
 from .integrand import ShadingPoint, integrand, shading_point
-from .patterns import PATTERNS, grid_shape, pattern_point, pattern_problem
+from .patterns import pattern_point
 from .rng import stream, uniform
 from .scene import ReceiverData, SceneData
-from .techniques import TECHNIQUES, LightTable, sample_direction, technique_pdf
+from .techniques import LightTable, sample_direction, technique_pdf
+from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Combiner, Pattern, grid_shape
 
-SINGLE = wp.constant(0)
-MIXTURE = wp.constant(1)
-BALANCE = wp.constant(2)
-POWER = wp.constant(3)
-BIASED = wp.constant(4)
-
-COMBINERS = {"single": 0, "mixture": 1, "balance": 2, "power": 3, "biased": 4}
-ONE_TECHNIQUE = ("single", "biased")
+# The kernels' combiner codes, from the registry (vocabulary.COMBINERS).
+SINGLE = wp.constant(COMBINERS["single"].code)
+MIXTURE = wp.constant(COMBINERS["mixture"].code)
+BALANCE = wp.constant(COMBINERS["balance"].code)
+POWER = wp.constant(COMBINERS["power"].code)
+BIASED = wp.constant(COMBINERS["biased"].code)
 # Random-number stream of the mixture's technique choices: past any technique's stream.
 PICK_STREAM = 1 << 16
 
@@ -64,22 +63,32 @@ class Estimator:
     def __str__(self) -> str:
         return self.spec
 
+    @property
+    def pattern_entry(self) -> Pattern:
+        """The pattern's descriptor in ``vocabulary.PATTERNS``."""
+        return PATTERNS[self.pattern]
+
+    @property
+    def combiner_entry(self) -> Combiner:
+        """The combiner's descriptor in ``vocabulary.COMBINERS``."""
+        return COMBINERS[self.combiner]
+
     def _problem(self) -> str | None:
-        if self.pattern not in PATTERNS:
-            return f"unknown pattern {self.pattern!r} (valid: {', '.join(PATTERNS)})"
-        if self.combiner not in COMBINERS:
-            return f"unknown combiner {self.combiner!r} (valid: {', '.join(COMBINERS)})"
-        for t in self.techniques:
-            if t not in TECHNIQUES:
-                return f"unknown technique {t!r} (valid: {', '.join(TECHNIQUES)})"
+        for registry, names in ((PATTERNS, (self.pattern,)), (COMBINERS, (self.combiner,)),
+                                (TECHNIQUES, self.techniques)):
+            unknown = [name for name in names if name not in registry]
+            if unknown:
+                return registry.unknown(unknown[0])
         if len(set(self.techniques)) != len(self.techniques):
             return "a technique is listed twice"
         count = len(self.techniques)
-        if self.combiner in ONE_TECHNIQUE and count != 1:
+        several = [c.name for c in COMBINERS.values() if c.several]
+        if not self.combiner_entry.several and count != 1:
             return f"combiner {self.combiner!r} takes exactly one technique (got {count}); " \
-                   "use mixture, balance or power to combine several"
-        if self.combiner not in ONE_TECHNIQUE and count < 2:
-            return f"combiner {self.combiner!r} combines two or more techniques; use single for one"
+                   f"use {_either(several)} to combine several"
+        if self.combiner_entry.several and count < 2:
+            one = next(c.name for c in COMBINERS.values() if not c.several and c.unbiased)
+            return f"combiner {self.combiner!r} combines two or more techniques; use {one} for one"
         return None
 
     @property
@@ -87,25 +96,29 @@ class Estimator:
         return len(self.techniques)
 
     def per_technique(self, n: int) -> int:
-        """m: samples each technique places (all N for single, biased and mixture)."""
-        if self.combiner in ("balance", "power"):
-            return n // self.technique_count
-        return n
+        """m: samples each technique places (N/N_g where the combiner splits N, else all N)."""
+        return self.combiner_entry.per_technique(n, self.technique_count)
 
     def check_n(self, n: int) -> None:
         """Raise a one-line error if this estimator cannot use N = ``n`` samples."""
         limits.count(n, f"estimator {self.spec!r}: N")
         k = self.technique_count
-        if self.combiner in ("balance", "power") and n % k:
+        splits = self.combiner_entry.splits_n
+        if splits and n % k:
             valid = ", ".join(str(k * i) for i in range(1, 5))
             raise WarpisError(f"estimator {self.spec!r}: N = {n} is not divisible by its {k} techniques "
                               f"(valid: multiples of {k}, e.g. {valid}, …)")
         m = self.per_technique(n)
-        problem = pattern_problem(self.pattern, m)
+        problem = self.pattern_entry.problem(m)
         if problem:
-            step = 2 * (k if self.combiner in ("balance", "power") else 1)
-            hint = f"; valid N: multiples of {step}" if m % 2 and "antithetic" in self.pattern else ""
+            step = 2 * (k if splits else 1)
+            hint = f"; valid N: multiples of {step}" if m % 2 and self.pattern_entry.paired else ""
             raise WarpisError(f"estimator {self.spec!r}: pattern {self.pattern!r} {problem}{hint}")
+
+
+def _either(names: list[str]) -> str:
+    """Names joined as "a, b or c"."""
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} or {names[-1]}"
 
 
 def parse_estimator(spec: str | Estimator) -> Estimator:
@@ -136,8 +149,8 @@ class KernelArgs:
         est.check_n(n)  # before anything is computed from n: no truncation, no int32 wrap
         m = est.per_technique(n)
         rows, cols = grid_shape(m)
-        return cls(PATTERNS[est.pattern], COMBINERS[est.combiner], tuple(TECHNIQUES[t] for t in est.techniques),
-                   m, rows, cols)
+        return cls(PATTERNS[est.pattern].code, COMBINERS[est.combiner].code,
+                   tuple(TECHNIQUES[t].code for t in est.techniques), m, rows, cols)
 
 
 # --------------------------------------------------------------------------- kernel

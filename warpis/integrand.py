@@ -23,11 +23,13 @@ import numpy as np
 import warp as wp
 
 from .scene import ReceiverData, Scene, SceneData
+from .vocabulary import MATERIALS
 from .warps import INV_2PI, INV_PI
 
-IRRADIANCE = wp.constant(0)
-LAMBERT = wp.constant(1)
-PHONG = wp.constant(2)
+# The kernels' material codes, from the registry (vocabulary.MATERIALS).
+IRRADIANCE = wp.constant(MATERIALS["irradiance"].code)
+LAMBERT = wp.constant(MATERIALS["lambert"].code)
+PHONG = wp.constant(MATERIALS["phong"].code)
 FAR = wp.constant(1.0e30)
 
 

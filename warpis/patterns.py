@@ -5,55 +5,23 @@ Each pattern places the ``m`` samples of one technique: ``independent`` (uniform
 square as m allows), ``antithetic`` (pairs u and (1,1) − u) and ``jittered-antithetic``
 (jittered points in the first half of the cells, their reflections through the centre
 of the square in the mirrored cells).  Points are computed from their index alone, so a
-kernel needs no per-trial arrays.
+kernel needs no per-trial arrays.  What the rest of warpis knows about each pattern (its
+constraints on m, its independent blocks for the theory) is its entry in
+``vocabulary.PATTERNS``.
 """
 
 from __future__ import annotations
 
-import math
-
 import warp as wp
 
 from .rng import uniform
+from .vocabulary import PATTERNS
 
-INDEPENDENT = wp.constant(0)
-JITTERED = wp.constant(1)
-ANTITHETIC = wp.constant(2)
-JITTERED_ANTITHETIC = wp.constant(3)
-
-# float32 holds every integer up to 2^24 exactly: a jittered cell index beyond it (and a
-# cell narrower than the generator's 2^-24 lattice) would no longer be placed exactly.
-MAX_CELLS_PER_SIDE = 1 << 24
-
-PATTERNS = {
-    "independent": 0,
-    "jittered": 1,
-    "antithetic": 2,
-    "jittered-antithetic": 3,
-}
-
-
-def grid_shape(m: int) -> tuple[int, int]:
-    """(rows, cols) with rows × cols = m and rows the largest divisor of m ≤ √m.
-
-    Searches down from ⌊√m⌋ and stops at the first divisor: at most √m steps, i.e.
-    46,341 for the largest N the kernels take (limits.MAX_COUNT).
-    """
-    rows = next(d for d in range(math.isqrt(m), 0, -1) if m % d == 0)
-    return rows, m // rows
-
-
-def pattern_problem(pattern: str, m: int) -> str | None:
-    """Why ``pattern`` cannot place ``m`` samples per technique, or None when it can."""
-    if m < 1:
-        return "needs at least one sample per technique"
-    if pattern in ("antithetic", "jittered-antithetic") and m % 2:
-        return f"pairs samples, so it needs an even number of samples per technique (got {m})"
-    if pattern in ("jittered", "jittered-antithetic") and max(grid_shape(m)) > MAX_CELLS_PER_SIDE:
-        rows, cols = grid_shape(m)
-        return (f"lays {m} samples per technique on a {rows} × {cols} grid, and float32 cannot place points "
-                f"inside more than {MAX_CELLS_PER_SIDE} cells per side")
-    return None
+# The kernels' codes, from the registry (vocabulary.PATTERNS describes each pattern).
+INDEPENDENT = wp.constant(PATTERNS["independent"].code)
+JITTERED = wp.constant(PATTERNS["jittered"].code)
+ANTITHETIC = wp.constant(PATTERNS["antithetic"].code)
+JITTERED_ANTITHETIC = wp.constant(PATTERNS["jittered-antithetic"].code)
 
 
 @wp.func

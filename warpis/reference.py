@@ -43,10 +43,10 @@ from .closed_form import irradiance_closed_form
 from .engine import run_trials, select_receivers
 from .errors import WarpisError
 from .estimators import parse_estimator
-from .integrand import IRRADIANCE, LAMBERT
 from .limits import count as check_count
 from .limits import seed as check_seed
 from .scene import Scene
+from .vocabulary import MATERIALS, TECHNIQUES
 
 QUADRATURE_SAMPLES = 4096
 QUADRATURE_REPLICAS = 32
@@ -72,12 +72,6 @@ DEFAULT_ALPHA = 0.75  # an edge (occluder, horizon, light outline) in a 2D integ
 GROWTH = 16
 
 DIFFUSE_CANDIDATES = ("jittered:single:light-solid-angle", "jittered:single:light-area")
-GLOSSY_CANDIDATES = ("jittered:single:light-solid-angle", "jittered:single:phong")
-# Relative CPU cost of one sample of each technique (measured on the bundled scenes: a
-# light-solid-angle sample costs 1.5–2 light-area or 4–7 phong samples).  It only ranks
-# candidates; a fixed table (rather than timing) keeps references reproducible.
-TECHNIQUE_COST = {"uniform": 1.0, "cosine": 1.0, "phong": 1.0, "light-area": 2.0, "light-power": 2.0,
-                  "light-solid-angle": 5.0}
 
 Progress = Callable[[int, int], None]  # (samples done, samples planned so far), all receivers
 
@@ -105,9 +99,10 @@ def quadrature_estimator(scene: Scene, receiver: int) -> str:
     The power heuristic has 1.5–2× less variance than the balance heuristic on
     veach-plates' glossy receivers at the same cost (at N = 1024 to 65536).
     """
-    if int(scene.receivers.material[receiver]) in (int(IRRADIANCE), int(LAMBERT)):
+    material = scene.receivers.material_of(receiver)
+    if material.diffuse:
         return "jittered:single:light-solid-angle"
-    return "jittered:power:light-solid-angle+phong"
+    return f"jittered:power:light-solid-angle+{material.bsdf_technique}"
 
 
 def candidates(scene: Scene, receiver: int) -> tuple[str, ...]:
@@ -124,9 +119,10 @@ def candidates(scene: Scene, receiver: int) -> tuple[str, ...]:
     understates the error most of the time.  Single-technique estimators of
     these bounded integrands have light tails, so the t-based stderr holds.
     """
-    if int(scene.receivers.material[receiver]) in (int(IRRADIANCE), int(LAMBERT)):
+    material = scene.receivers.material_of(receiver)
+    if material.diffuse:
         return DIFFUSE_CANDIDATES
-    return GLOSSY_CANDIDATES
+    return ("jittered:single:light-solid-angle", f"jittered:single:{material.bsdf_technique}")
 
 
 def check_rel_error(value: object, what: str = "rel_error") -> float:
@@ -205,8 +201,12 @@ def _closed_form(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     # The integrand shades at the receiver position x itself (no offset along n).
     shading = rx.positions[idx]
     values, exact = irradiance_closed_form(shading, rx.normals[idx], scene.triangle_vertices(), scene.emission)
-    diffuse = np.isin(rx.material[idx], [int(IRRADIANCE), int(LAMBERT)])
-    albedo = np.where(rx.material[idx] == int(IRRADIANCE), 1.0, rx.albedo[idx] / np.pi)
+    diffuse = np.zeros(len(idx), bool)
+    albedo = np.empty(len(idx))
+    for material in MATERIALS.values():
+        mine = rx.material[idx] == material.code
+        diffuse[mine] = material.diffuse
+        albedo[mine] = material.lambert_scale(rx.albedo[idx][mine])
     return values * albedo, exact & diffuse, np.abs(values * albedo)
 
 
@@ -277,7 +277,7 @@ def _runs_at(spec: str, n: int) -> bool:
 def _cost(spec: str) -> float:
     """Relative cost of one sample (MIS, should a candidate use it, samples its techniques in turn)."""
     techs = parse_estimator(spec).techniques
-    return sum(TECHNIQUE_COST[t] for t in techs) / len(techs)
+    return sum(TECHNIQUES[t].cost for t in techs) / len(techs)
 
 
 def _needed(n: int, se: float, tol: float, alpha: float) -> float:

@@ -14,6 +14,7 @@ import math
 import re
 import tomllib
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -25,13 +26,8 @@ import warp as wp
 
 from . import limits
 from .errors import WarpisError, fail
+from .vocabulary import MATERIALS, Material
 
-MATERIALS = {"irradiance": 0, "lambert": 1, "phong": 2}
-MATERIAL_KEYS = {
-    "irradiance": {"type"},
-    "lambert": {"type", "albedo"},
-    "phong": {"type", "albedo", "exponent", "view"},
-}
 # Emitter triangles whose area is below this fraction of their longest edge squared are
 # needles: no float32 ray can hit them reliably nor can they be sampled with a finite pdf.
 DEGENERATE_AREA = 1e-12
@@ -66,7 +62,7 @@ class ReceiverData:
 
     position: wp.array(dtype=wp.vec3)
     normal: wp.array(dtype=wp.vec3)
-    material: wp.array(dtype=wp.int32)  # MATERIALS code
+    material: wp.array(dtype=wp.int32)  # vocabulary.MATERIALS code
     albedo: wp.array(dtype=wp.float32)
     exponent: wp.array(dtype=wp.float32)
     view: wp.array(dtype=wp.vec3)  # unit direction towards the viewer
@@ -79,7 +75,7 @@ class Receivers:
 
     positions: np.ndarray  # (R, 3)
     normals: np.ndarray  # (R, 3), unit
-    material: np.ndarray  # (R,) int, MATERIALS code
+    material: np.ndarray  # (R,) int, vocabulary.MATERIALS code
     albedo: np.ndarray  # (R,)
     exponent: np.ndarray  # (R,)
     view: np.ndarray  # (R, 3), unit
@@ -90,9 +86,13 @@ class Receivers:
     def __len__(self) -> int:
         return len(self.positions)
 
+    def material_of(self, index: int) -> Material:
+        """The material of receiver ``index`` (its entry in ``vocabulary.MATERIALS``)."""
+        return MATERIALS.by_code(self.material[index])
+
     def material_name(self, index: int) -> str:
         """The material type of receiver ``index`` as spelled in scene files."""
-        return next(k for k, v in MATERIALS.items() if v == self.material[index])
+        return self.material_of(index).name
 
 
 @dataclass
@@ -339,21 +339,40 @@ def _triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- receivers & materials
 
 
+def _float32_number(value: Any, what: str, file: Path) -> float:
+    return _float32(_number(value, what, file), what, file)
+
+
+def _unit_vector(value: Any, what: str, file: Path) -> np.ndarray:
+    return _unit(_vector(value, what, file), what, file)
+
+
+# The keys a material table may hold (each material lists its own in vocabulary.MATERIALS):
+# how each is read, and its value for a material without it (or that leaves it out).
+MATERIAL_PARAMETERS: dict[str, tuple[Callable[[Any, str, Path], Any], Any]] = {
+    "albedo": (_float32_number, 1.0),
+    "exponent": (_float32_number, 1.0),
+    "view": (_unit_vector, np.array([0.0, 0.0, 1.0])),
+}
+
+
 def _material(spec: Any, where: str, file: Path) -> dict[str, Any]:
     if not isinstance(spec, dict):
         raise fail(file, f"{where} must be a table")
     kind = _require(spec, "type", where, file)
     if kind not in MATERIALS:
         raise fail(file, f"{where}.type {kind!r} is not one of {', '.join(MATERIALS)}")
-    _check_keys(spec, MATERIAL_KEYS[kind], where, file)
-    albedo = _float32(_number(spec.get("albedo", 1.0), f"{where}.albedo", file), f"{where}.albedo", file)
-    exponent = 1.0
-    view = np.array([0.0, 0.0, 1.0])
-    if kind == "phong":
-        exponent = _number(_require(spec, "exponent", where, file), f"{where}.exponent", file)
-        exponent = _float32(exponent, f"{where}.exponent", file)
-        view = _unit(_vector(_require(spec, "view", where, file), f"{where}.view", file), f"{where}.view", file)
-    return {"code": MATERIALS[kind], "albedo": albedo, "exponent": exponent, "view": view}
+    material = MATERIALS[kind]
+    _check_keys(spec, {"type", *material.keys}, where, file)
+    out: dict[str, Any] = {"code": material.code}
+    for key, (parse, default) in MATERIAL_PARAMETERS.items():
+        if key in material.required:
+            out[key] = parse(_require(spec, key, where, file), f"{where}.{key}", file)
+        elif key in spec:
+            out[key] = parse(spec[key], f"{where}.{key}", file)
+        else:
+            out[key] = default
+    return out
 
 
 def _grid_points(spec: Any, where: str, file: Path) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:

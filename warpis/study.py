@@ -46,15 +46,18 @@ from .errors import WarpisError
 from .estimators import Estimator, parse_estimator
 from .scene import Scene, bundled_scenes, load_scene, read_toml, resolve_scene_path
 from .stats import fit_slope, variance_interval
+from .theory import BOUNDS
+from .vocabulary import expected_slope as registry_slope
 
 STUDY_KEYS = ("name", "description", "seed", "trials", "n", "scenes", "estimators", "receivers", "predictions",
               "outputs", "threads")
 OUTPUTS = ("convergence", "maps", "calibration")
-# Every prediction form of theory.predictions, in the order of the CSV's columns.
+# Every prediction form of theory.FORMS, in the order of the CSV's columns (a file format:
+# a new form gets its column here; tests/test_vocabulary.py checks that none is missing).
 FORMS = ("exact", "eq1", "eq6", "eq7-printed", "eq7-exact", "eq8", "eq10-printed", "eq10-exact", "eq14-printed",
          "eq14-exact", "eq17", "eq19", "eq20", "power-exact", "mixture-exact", "antithetic-exact",
          "jittered-antithetic-exact", "veach-bound")
-BOUND_FORMS = ("eq17", "eq20", "veach-bound")
+BOUND_FORMS = BOUNDS
 Z_FORMS = tuple(f for f in FORMS if f not in BOUND_FORMS)
 HEADER = (["scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mean_stderr", "reference",
            "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi"]
@@ -538,8 +541,9 @@ def write_results(out: Path, study: Study, cells: list[Cell], done: dict[str, li
 # --------------------------------------------------------------------------- summaries
 
 
-def expected_slope(est: Estimator) -> dict[str, float]:
-    """The rate theory expects for variance against N: smooth integrand, and with discontinuities.
+def expected_slope(est: Estimator) -> dict[str, float] | None:
+    """The rate theory expects for variance against N: smooth integrand, and with
+    discontinuities (``vocabulary.expected_slope``); None where no rate is stated.
 
     −1 for independent and antithetic patterns (IS, MIS, mixture, biased alike): they
     change the constant, not the rate.  Jittered patterns: about −2 on smooth 2D
@@ -547,13 +551,14 @@ def expected_slope(est: Estimator) -> dict[str, float]:
     silhouettes under BSDF sampling).  The mixture picks its technique at random per
     sample, which is not stratified: −1 whatever the pattern.
     """
-    if est.pattern in ("jittered", "jittered-antithetic") and est.combiner != "mixture":
-        return {"smooth": -2.0, "discontinuous": -1.5}
-    return {"smooth": -1.0, "discontinuous": -1.0}
+    slope = registry_slope(est.pattern_entry, est.combiner_entry)
+    return None if slope is None else slope.as_dict()
 
 
 def expected_text(est: Estimator) -> str:
     e = expected_slope(est)
+    if e is None:
+        return "not stated"
     if e["smooth"] == e["discontinuous"]:
         return f"{e['smooth']:g}"
     return f"{e['smooth']:g} smooth, {e['discontinuous']:g} with edges"

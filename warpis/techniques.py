@@ -1,6 +1,6 @@
 """Sampling techniques: ``sample(u) → (ω, pdf)`` and ``pdf(ω)`` pairs, as Warp functions.
 
-Techniques (codes in ``TECHNIQUES``):
+Techniques (entries of ``vocabulary.TECHNIQUES``):
 
 ``uniform``            uniform over the receiver's hemisphere, 1/(2π).
 ``cosine``             cosine-weighted hemisphere, cos θ/π (BSDF sampling for irradiance
@@ -32,6 +32,7 @@ import warp as wp
 
 from .integrand import ShadingPoint, shading_point
 from .scene import ReceiverData, Scene, SceneData
+from .vocabulary import TECHNIQUES
 from .warps import (
     cosine_hemisphere_pdf,
     phong_lobe_pdf,
@@ -45,22 +46,13 @@ from .warps import (
     uniform_hemisphere_pdf,
 )
 
-UNIFORM = wp.constant(0)
-COSINE = wp.constant(1)
-PHONG_LOBE = wp.constant(2)
-LIGHT_AREA = wp.constant(3)
-LIGHT_POWER = wp.constant(4)
-LIGHT_SOLID_ANGLE = wp.constant(5)
-
-TECHNIQUES = {
-    "uniform": 0,
-    "cosine": 1,
-    "phong": 2,
-    "light-area": 3,
-    "light-power": 4,
-    "light-solid-angle": 5,
-}
-LIGHT_TECHNIQUES = ("light-area", "light-power", "light-solid-angle")
+# The kernels' codes, from the registry.
+UNIFORM = wp.constant(TECHNIQUES["uniform"].code)
+COSINE = wp.constant(TECHNIQUES["cosine"].code)
+PHONG = wp.constant(TECHNIQUES["phong"].code)
+LIGHT_AREA = wp.constant(TECHNIQUES["light-area"].code)
+LIGHT_POWER = wp.constant(TECHNIQUES["light-power"].code)
+LIGHT_SOLID_ANGLE = wp.constant(TECHNIQUES["light-solid-angle"].code)
 
 # Crossings a pdf evaluation remembers, so that a ray through an edge (or corner) shared
 # by several emitter triangles, which each of them reports, counts that crossing once.
@@ -265,7 +257,7 @@ def technique_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: Shadi
         return uniform_hemisphere_pdf(wp.dot(w, sp.n))
     if tech == COSINE:
         return cosine_hemisphere_pdf(wp.dot(w, sp.n))
-    if tech == PHONG_LOBE:
+    if tech == PHONG:
         return phong_lobe_pdf(wp.dot(w, sp.lobe_axis), sp.exponent)
     return light_pdf(tech, scene, table, sp, w)
 
@@ -277,7 +269,7 @@ def sample_direction(tech: wp.int32, scene: SceneData, table: LightTable, sp: Sh
         return to_world(square_to_uniform_hemisphere(u), sp.n)
     if tech == COSINE:
         return to_world(square_to_cosine_hemisphere(u), sp.n)
-    if tech == PHONG_LOBE:
+    if tech == PHONG:
         return to_world(square_to_phong_lobe(u, sp.exponent), sp.lobe_axis)
     return sample_light(tech, scene, table, sp, u)
 
@@ -332,11 +324,7 @@ def light_table(scene: Scene) -> LightTable:
 
 def technique_code(name: str) -> int:
     """The code of a technique name, or a one-line error listing the valid names."""
-    from .errors import WarpisError
-
-    if name not in TECHNIQUES:
-        raise WarpisError(f"unknown technique {name!r} (valid: {', '.join(TECHNIQUES)})")
-    return TECHNIQUES[name]
+    return TECHNIQUES.lookup(name).code
 
 
 # --------------------------------------------------------------------------- numpy wrappers

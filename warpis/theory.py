@@ -5,18 +5,21 @@ dense jittered points u of each technique's primary-sample square, a kernel retu
 f(T_k(u)) and the pdf of every technique of the set at T_k(u).  From those:
 
 * **Exact variance of any estimator** (``exact_variance``).  Every pattern splits one
-  technique's m samples into independent *blocks*: ``independent`` has m blocks, each one
-  point over the whole square; ``jittered`` m blocks, one per cell; ``antithetic`` m/2
-  blocks, each the pair (u, 1−u) over the whole square; ``jittered-antithetic`` m/2 blocks,
-  the pair (u, reflect(u)) with u in cell i < m/2.  An estimate is c·Σ_k Σ_blocks (block
-  sum of ψ_k), ψ_k the combiner's weighted value of a sample of technique k, so
+  technique's m samples into independent *blocks* (its ``blocks`` in vocabulary.PATTERNS):
+  ``independent`` has m blocks, each one point over the whole square; ``jittered`` m
+  blocks, one per cell; ``antithetic`` m/2 blocks, each the pair (u, 1−u) over the whole
+  square; ``jittered-antithetic`` m/2 blocks, the pair (u, reflect(u)) with u in cell
+  i < m/2.  An estimate is c·Σ_k Σ_blocks (block
+  sum of ψ_k), ψ_k the combiner's weighted value of a sample of technique k (its
+  ``weights`` in vocabulary.COMBINERS), so
   Var = c² Σ_k Σ_b Var(block sum) — a sum of within-block variances, never a difference of
   two large numbers.  The mixture's random technique choice enters through the moments
   given u: E[ψ|u] = mean_k ψ_k(u), E[ψ²|u] = mean_k ψ_k(u)².
 * **Reference moments** (``moments``): I, I_k, E_ḡ[h²], E_{g_k}[(f/g_k)²], ∫ f g_k,
   ∫ f² g_k, ∫ f², ∫ 1/g_k, and the stratum integrals J_ik.
-* **The seed's equations** as printed and exactly (``predictions``); docs/theory.md derives
-  each and states how an ambiguous print is read.
+* **The seed's equations** as printed and exactly (``predictions``, one ``Form`` each in
+  ``FORMS``); docs/theory.md derives each and states how an ambiguous print is read.  An
+  entry registered without its theory leaves its forms out with a reason, never an error.
 
 Accuracy: each quantity is computed from R independent replicas of the jittered points.
 Block variances use E[Q] − E[P]² with E[P]² estimated from *pairs of different replicas*,
@@ -28,19 +31,20 @@ budget is spent, which the result then says.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
 from .engine import default_threads
+from .errors import WarpisError
 from .estimators import Estimator, parse_estimator
 from .integrand import integrand, shading_point
-from .patterns import grid_shape
 from .scene import ReceiverData, Scene, SceneData
-from .techniques import TECHNIQUES, LightTable, light_table, sample_technique, technique_pdf
+from .techniques import LightTable, light_table, sample_technique, technique_pdf
+from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Blocks
 
 REL_TOL = 0.01
 REPLICAS = 8
@@ -80,7 +84,7 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
     On the CPU the points are split over the engine's worker threads (one launch each).
     """
     dev = scene.device
-    codes = wp.array(np.array([TECHNIQUES[t] for t in techniques], np.int32), dtype=wp.int32, device=dev)
+    codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32, device=dev)
     table = light_table(scene)
     f_all = np.empty(len(u))
     pdf_all = np.empty((len(u), len(techniques)))
@@ -107,54 +111,17 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
 
 
 def weighted_values(combiner: str, k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
-    """ψ_k: the value a sample of technique k adds to the combiner's sum (see estimators.py)."""
+    """ψ_k: the value a sample of technique k adds to the combiner's sum (its registry
+    entry's numpy weights; see estimators.py), 0 where f or g_k is 0."""
+    weights = COMBINERS[combiner].weights
+    if weights is None:  # exact_form_problem tells the callers first
+        raise WarpisError(f"combiner {combiner!r} has no numpy weights")
     with np.errstate(divide="ignore", invalid="ignore"):
-        gk = pdf[:, k]
-        if combiner == "single":
-            out = f / gk
-        elif combiner == "biased":
-            out = f.copy()
-        elif combiner in ("balance", "mixture"):
-            out = f * pdf.shape[1] / pdf.sum(axis=1)
-        elif combiner == "power":
-            out = f * gk / (pdf**2).sum(axis=1)
-        else:
-            raise ValueError(combiner)
-    return np.where((gk > 0) & (f > 0), out, 0.0)
-
-
-def combiner_scale(est: Estimator, n: int) -> float:
-    """c in estimate = c · Σ_k Σ_i ψ_k."""
-    m = est.per_technique(n)
-    if est.combiner == "balance":
-        return 1.0 / (m * est.technique_count)
-    return 1.0 / m
+        out = weights(k, f, pdf)
+    return np.where((pdf[:, k] > 0) & (f > 0), out, 0.0)
 
 
 # --------------------------------------------------------------------------- blocks
-
-
-@dataclass(frozen=True)
-class Blocks:
-    """The independent blocks of one technique's m samples under a pattern."""
-
-    count: int  # number of blocks (identical blocks are not repeated)
-    multiplicity: int  # each listed block stands for this many identical ones
-    cells: tuple[int, int]  # (rows, cols) of the grid the blocks live on; (1, 1) = whole square
-    paired: bool  # antithetic: block value is ψ(u) + ψ(reflect(u))
-
-
-def blocks_of(pattern: str, m: int) -> Blocks:
-    if pattern == "independent":
-        return Blocks(1, m, (1, 1), False)
-    if pattern == "antithetic":
-        return Blocks(1, m // 2, (1, 1), True)
-    rows, cols = grid_shape(m)
-    if pattern == "jittered":
-        return Blocks(m, 1, (rows, cols), False)
-    if pattern == "jittered-antithetic":
-        return Blocks(m // 2, 1, (rows, cols), True)
-    raise ValueError(pattern)
 
 
 def _points(blocks: Blocks, sub: int, replicas: int, rng: np.random.Generator) -> np.ndarray:
@@ -218,18 +185,32 @@ def _jackknife(q: np.ndarray, p: np.ndarray) -> tuple[float, float]:
 # --------------------------------------------------------------------------- exact variance
 
 
+def exact_form_problem(est: Estimator) -> str | None:
+    """Why ``est`` has no exact variance (an entry registered without its theory), or None."""
+    if est.pattern_entry.blocks is None:
+        return f"pattern {est.pattern!r} has no block decomposition, so no exact variance"
+    if est.combiner_entry.weights is None:
+        return f"combiner {est.combiner!r} has no numpy weights, so no exact variance"
+    return None
+
+
 def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: int, rel_tol: float = REL_TOL,
                    seed: int = SEED, max_points: int = MAX_POINTS) -> Estimate:
     """The exact variance of one estimate (N = ``n``) at one receiver, to ``rel_tol``.
 
     Var = c² · multiplicity · Σ_k Σ_b Var(block sum).  The block sums are computed once
     per block layout and cached on the scene: for ``independent`` and ``antithetic`` the
-    layout (one block over the whole square) is the same for every N.
+    layout (one block over the whole square) is the same for every N.  A one-line
+    WarpisError where the estimator has no exact form (``exact_form_problem``).
     """
     est = parse_estimator(estimator)
     est.check_n(n)
-    blocks = blocks_of(est.pattern, est.per_technique(n))
-    c = combiner_scale(est, n)
+    problem = exact_form_problem(est)
+    if problem:
+        raise WarpisError(f"estimator {est.spec!r}: {problem}")
+    m = est.per_technique(n)
+    blocks = est.pattern_entry.blocks(m)
+    c = est.combiner_entry.scale(m, est.technique_count)
     cache = scene.__dict__.setdefault("_block_variance_cache", {})
     key = (receiver, est.pattern, est.combiner, est.techniques, blocks.count, blocks.cells, rel_tol, seed, max_points)
     if key not in cache:
@@ -277,7 +258,9 @@ def _block_moments(scene: Scene, receiver: int, est: Estimator, blocks: Blocks, 
     shape = u.shape[:3]
     flat = u.reshape(-1, 2)
     centres = _centres(blocks)
-    streams = [None] if est.combiner == "mixture" else range(len(techs))
+    # A combiner that picks the technique per sample has one stream; its moments given u
+    # average over the techniques.  Otherwise each technique is its own stream.
+    streams = [None] if est.combiner_entry.random_pick else range(len(techs))
     for k in streams:
         ks = range(len(techs)) if k is None else [k]
 
@@ -317,22 +300,13 @@ class Moments:
     int_fg: list[Estimate]  # ∫ f g_k
     int_f2g: list[Estimate]  # ∫ f² g_k
     int_f2: Estimate  # ∫ f² over the hemisphere
-    int_inv_g: list[float]  # ∫ 1/g_k over the hemisphere (inf where g_k vanishes or diverges)
+    int_inv_g: list[float | None]  # ∫ 1/g_k over the hemisphere (inf where g_k vanishes or diverges; None: unknown)
 
 
 def _mean_estimate(values: np.ndarray) -> Estimate:
     """Mean over (replicas, points) of stratified values with a between-replica stderr."""
     per = values.reshape(values.shape[0], -1).mean(axis=1)
     return Estimate(float(per.mean()), float(per.std(ddof=1) / math.sqrt(len(per))), values.size)
-
-
-def inverse_pdf_integral(technique: str) -> float:
-    """∫_hemisphere 1/g dω: 4π² for uniform; infinite for every other technique here.
-
-    cosine: ∫ π/cos θ dω diverges (logarithmically) at the horizon; phong's lobe and the
-    light techniques vanish on part of the hemisphere.
-    """
-    return 4 * math.pi**2 if technique == "uniform" else math.inf
 
 
 def moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int = 256, seed: int = SEED) -> Moments:
@@ -359,14 +333,14 @@ def moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int =
     n_g = len(techniques)
     big_i = Estimate(sum(e.value for e in i_k) / n_g, math.sqrt(sum(e.stderr**2 for e in i_k)) / n_g, u.size)
     return Moments(tuple(techniques), big_i, i_k, e_hbar2, e_is2, fg, f2g, int_f2,
-                   [inverse_pdf_integral(t) for t in techniques])
+                   [TECHNIQUES[t].inverse_pdf_integral for t in techniques])
 
 
 def stratum_integrals(scene: Scene, receiver: int, techniques: tuple[str, ...], m: int, sub: int = 8,
                       seed: int = SEED) -> np.ndarray:
     """J_ik: ∫ over cell i of h(T_k(u)) du (cells of measure 1/m), shape (N_g, m)."""
     rng = np.random.default_rng([seed, receiver, m])
-    blocks = blocks_of("jittered", m)
+    blocks = PATTERNS["jittered"].blocks(m)  # the cells of the m-cell grid
     u = _points(blocks, sub, 1, rng)
     out = []
     for k in range(len(techniques)):
@@ -379,86 +353,204 @@ def stratum_integrals(scene: Scene, receiver: int, techniques: tuple[str, ...], 
 # --------------------------------------------------------------------------- the equations
 
 
-def predictions(scene: Scene, receiver: int, estimator: str | Estimator, n: int,
-                mom: Moments | None = None, rel_tol: float = REL_TOL) -> dict[str, Estimate]:
-    """Every form that applies to ``estimator`` at N = ``n``: name → predicted variance.
+@dataclass(frozen=True)
+class Scope:
+    """The estimators a form describes: a pattern and a combiner (None: any), optionally a
+    technique count, optionally every pattern but one."""
 
-    Forms (docs/theory.md derives each; README lists them):
-    ``eq1`` (independent single IS), ``eq6`` (independent balance, two techniques),
-    ``eq7-printed`` / ``eq7-exact`` (independent balance), ``eq8`` (independent mixture:
-    averaged-pdf IS), ``eq10-printed`` / ``eq10-exact`` (jittered single),
-    ``eq14-printed`` / ``eq14-exact`` (jittered balance), ``eq17`` (bound, independent
-    single), ``eq19`` (independent biased), ``eq20`` (bound, independent biased),
-    ``power-exact``, ``mixture-exact``, ``antithetic-exact``, ``jittered-antithetic-exact``
-    and ``veach-bound`` (balance ≤ power + (1/m − 1/N)·I²).
+    pattern: str | None = None
+    combiner: str | None = None
+    techniques: int | None = None
+    not_pattern: str | None = None
+
+    def covers(self, est: Estimator) -> bool:
+        return (self.pattern in (None, est.pattern) and self.combiner in (None, est.combiner)
+                and self.techniques in (None, est.technique_count) and est.pattern != self.not_pattern)
+
+    def __str__(self) -> str:
+        """As a spec pattern, e.g. ``independent:balance:*`` (+ what else it requires)."""
+        text = f"{self.pattern or '*'}:{self.combiner or '*'}:*"
+        if self.techniques:
+            text += f" with {self.techniques} techniques"
+        return text + (f" not under {self.not_pattern}" if self.not_pattern else "")
+
+
+class _Cell:
+    """One receiver × estimator × N: what the forms read, each part computed on first use."""
+
+    def __init__(self, scene: Scene, receiver: int, est: Estimator, n: int, mom: Moments, rel_tol: float):
+        self.scene, self.receiver, self.est, self.n, self.mom, self.rel_tol = scene, receiver, est, n, mom, rel_tol
+        self._exact: Estimate | str | None = None
+
+    @property
+    def exact(self) -> Estimate | str:
+        """The estimator's exact variance, or why it has none."""
+        if self._exact is None:
+            self._exact = exact_form_problem(self.est) or exact_variance(self.scene, self.receiver, self.est, self.n,
+                                                                           rel_tol=self.rel_tol)
+        return self._exact
+
+    @property
+    def i_k(self) -> np.ndarray:
+        return np.array([e.value for e in self.mom.I_k])
+
+
+def _eq1(c: _Cell) -> Estimate:
+    mom, n = c.mom, c.n
+    return _form((mom.E_is2[0].value - mom.I_k[0].value ** 2) / n, mom.E_is2[0], 1 / n)
+
+
+def _eq17(c: _Cell) -> Estimate | str:
+    mom, n = c.mom, c.n
+    inv = mom.int_inv_g[0]  # infinite unless g is uniform: then the bound says nothing
+    if inv is None:
+        return f"∫ 1/g dω is not known for technique {c.est.techniques[0]!r}"
+    if mom.int_f2.value == 0:  # no light in view: f ≡ 0 and the bound is 0
+        return Estimate(0.0, 0.0)
+    return Estimate(mom.int_f2.value * inv / n, 0.0 if math.isinf(inv) else mom.int_f2.stderr * inv / n)
+
+
+def _eq8(c: _Cell) -> Estimate:
+    mom, n = c.mom, c.n
+    return _form((mom.E_hbar2.value - mom.I.value**2) / n, mom.E_hbar2, 1 / n)
+
+
+def _eq7_printed(c: _Cell) -> Estimate:
+    return _eq7(c, printed=True)
+
+
+def _eq7_exact(c: _Cell) -> Estimate:
+    return _eq7(c, printed=False)
+
+
+def _eq7(c: _Cell, printed: bool) -> Estimate:
+    mom, n, n_g, big_i, i_k = c.mom, c.n, c.est.technique_count, c.mom.I.value, c.i_k
+    v_avg = (mom.E_hbar2.value - big_i**2) / n
+    if printed:  # κ with the full double sum
+        kappa = (i_k.sum() ** 2) - n_g * (n_g - 1) * big_i**2
+    else:  # κ over i ≠ j
+        kappa = n_g * big_i**2 - (i_k**2).sum()
+    return _form(v_avg + kappa / (n * n_g), mom.E_hbar2, 1 / n)
+
+
+def _eq6(c: _Cell) -> Estimate:
+    mom, n, big_i, i_k = c.mom, c.n, c.mom.I.value, c.i_k
+    return _form((2 * mom.E_hbar2.value - 4 * big_i**2 + 2 * i_k[0] * i_k[1]) / (2 * n), mom.E_hbar2, 1 / n)
+
+
+def _eq19(c: _Cell) -> Estimate:
+    mom, n = c.mom, c.n
+    return _form((mom.int_f2g[0].value - mom.int_fg[0].value ** 2) / n, mom.int_f2g[0], 1 / n)
+
+
+def _eq20(c: _Cell) -> Estimate:
+    return Estimate(c.mom.int_f2.value / c.n, c.mom.int_f2.stderr / c.n)
+
+
+def _eq10_printed(c: _Cell) -> Estimate:
+    """Seed eq. 10 as printed: (1/N²) Σ_i (∫_{D_i} f²/g − I_i²), strata without the m-fold
+    renormalisation of the stratum pdf; I_i = J_i (the same integral in u)."""
+    mom, n = c.mom, c.n
+    j = stratum_integrals(c.scene, c.receiver, c.est.techniques, n)
+    return _form((mom.E_is2[0].value - (j[0] ** 2).sum()) / n**2, mom.E_is2[0], 1 / n**2)
+
+
+def _eq14_printed(c: _Cell) -> Estimate:
+    mom, n, n_g, big_i, i_k = c.mom, c.n, c.est.technique_count, c.mom.I.value, c.i_k
+    m = n // n_g
+    j = stratum_integrals(c.scene, c.receiver, c.est.techniques, m) / n_g  # ∫_{D_i^k} f̌ g_k with f̌ = f/(N_g ḡ)
+    eta = sum(i_k[a] * i_k[b] for a in range(n_g) for b in range(a + 1, n_g)) / n_g**2
+    psi_k = ((j.sum(axis=1) ** 2) - (j**2).sum(axis=1)).sum()
+    psi = eta + psi_k - (n_g - 1) / n_g * big_i**2
+    v_avg = (mom.E_hbar2.value - big_i**2) / n
+    return _form(n_g / n * v_avg + n_g**2 / n**2 * psi, mom.E_hbar2, n_g / n**2)
+
+
+def _exact(c: _Cell) -> Estimate | str:
+    return c.exact
+
+
+def _veach_bound(c: _Cell) -> Estimate | str:
+    """Veach's bound with the power heuristic under the same pattern as the other weighting."""
+    power = Estimator(c.est.pattern, "power", c.est.techniques)
+    problem = exact_form_problem(power)
+    if problem:
+        return f"needs the exact variance of {power.spec}: {problem}"
+    v = exact_variance(c.scene, c.receiver, power, c.n, rel_tol=c.rel_tol)
+    m = c.est.per_technique(c.n)
+    return Estimate(v.value + (1 / m - 1 / c.n) * c.mom.I.value**2, v.stderr)
+
+
+@dataclass(frozen=True)
+class Form:
+    """A prediction: the estimators it describes, how it is computed (an Estimate, or the
+    reason it cannot be), and whether it is an upper bound rather than an equation."""
+
+    name: str
+    scope: Scope
+    compute: Callable[[_Cell], Estimate | str]
+    bound: bool = False
+
+
+# Every form (docs/theory.md derives each; README lists them), in the order they appear in
+# a prediction dict.  Registry entries reach them through their numpy twins: a new pattern
+# or combiner gets ``exact`` (and the forms scoped to any pattern or combiner) from its
+# descriptor, or a reason why not.
+FORMS: tuple[Form, ...] = (
+    Form("eq1", Scope("independent", "single"), _eq1),
+    Form("eq17", Scope("independent", "single"), _eq17, bound=True),
+    Form("eq8", Scope("independent", "mixture"), _eq8),
+    Form("eq7-printed", Scope("independent", "balance"), _eq7_printed),
+    Form("eq7-exact", Scope("independent", "balance"), _eq7_exact),
+    Form("eq6", Scope("independent", "balance", techniques=2), _eq6),
+    Form("eq19", Scope("independent", "biased"), _eq19),
+    Form("eq20", Scope("independent", "biased"), _eq20, bound=True),
+    Form("eq10-printed", Scope("jittered", "single"), _eq10_printed),
+    Form("eq10-exact", Scope("jittered", "single"), _exact),
+    Form("eq14-printed", Scope("jittered", "balance"), _eq14_printed),
+    Form("eq14-exact", Scope("jittered", "balance"), _exact),
+    Form("power-exact", Scope(combiner="power"), _exact),
+    Form("mixture-exact", Scope(combiner="mixture", not_pattern="independent"), _exact),  # eq8 is independent's
+    Form("antithetic-exact", Scope("antithetic"), _exact),
+    Form("jittered-antithetic-exact", Scope("jittered-antithetic"), _exact),
+    Form("veach-bound", Scope(combiner="balance"), _veach_bound, bound=True),
+    Form("exact", Scope(), _exact),
+)
+BOUNDS = tuple(f.name for f in FORMS if f.bound)
+
+
+class Predictions(dict[str, Estimate]):
+    """Form name → predicted variance for every form that applies and can be computed;
+    ``reasons`` says, for every other form of ``FORMS``, why it is absent."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reasons: dict[str, str] = {}
+
+
+def predictions(scene: Scene, receiver: int, estimator: str | Estimator, n: int,
+                mom: Moments | None = None, rel_tol: float = REL_TOL) -> Predictions:
+    """Every form of ``FORMS`` that applies to ``estimator`` at N = ``n``: name → predicted
+    variance, with the reason for each absent form in ``.reasons`` (a form outside its
+    scope, or an estimator whose registry entries carry no exact form): never an error
+    for an estimator that parses and takes N.
     """
     est = parse_estimator(estimator)
     est.check_n(n)
-    techs = est.techniques
-    mom = mom or moments(scene, receiver, techs)
-    out: dict[str, Estimate] = {}
-    exact = exact_variance(scene, receiver, est, n, rel_tol=rel_tol)
-    pat, comb, n_g = est.pattern, est.combiner, len(techs)
-    big_i = mom.I.value
-    if pat == "independent":
-        if comb == "single":
-            out["eq1"] = _form((mom.E_is2[0].value - mom.I_k[0].value ** 2) / n, mom.E_is2[0], 1 / n)
-            inv = mom.int_inv_g[0]  # infinite unless g is uniform: then the bound says nothing
-            if mom.int_f2.value == 0:  # no light in view: f ≡ 0 and the bound is 0
-                out["eq17"] = Estimate(0.0, 0.0)
-            else:
-                out["eq17"] = Estimate(mom.int_f2.value * inv / n,
-                                       0.0 if math.isinf(inv) else mom.int_f2.stderr * inv / n)
-        elif comb == "mixture":
-            out["eq8"] = _form((mom.E_hbar2.value - big_i**2) / n, mom.E_hbar2, 1 / n)
-        elif comb == "balance":
-            i_k = np.array([e.value for e in mom.I_k])
-            v_avg = (mom.E_hbar2.value - big_i**2) / n
-            kappa_printed = (i_k.sum() ** 2) - n_g * (n_g - 1) * big_i**2
-            kappa_exact = n_g * big_i**2 - (i_k**2).sum()
-            out["eq7-printed"] = _form(v_avg + kappa_printed / (n * n_g), mom.E_hbar2, 1 / n)
-            out["eq7-exact"] = _form(v_avg + kappa_exact / (n * n_g), mom.E_hbar2, 1 / n)
-            if n_g == 2:
-                out["eq6"] = _form((2 * mom.E_hbar2.value - 4 * big_i**2 + 2 * i_k[0] * i_k[1]) / (2 * n), mom.E_hbar2,
-                                  1 / n)
-        elif comb == "biased":
-            out["eq19"] = _form((mom.int_f2g[0].value - mom.int_fg[0].value ** 2) / n, mom.int_f2g[0], 1 / n)
-            out["eq20"] = Estimate(mom.int_f2.value / n, mom.int_f2.stderr / n)
-    if pat == "jittered" and comb == "single":
-        j = stratum_integrals(scene, receiver, techs, n)
-        # Seed eq. 10 as printed: (1/N²) Σ_i (∫_{D_i} f²/g − I_i²), strata without the
-        # m-fold renormalisation of the stratum pdf; I_i = J_i (the same integral in u).
-        out["eq10-printed"] = _form((mom.E_is2[0].value - (j[0] ** 2).sum()) / n**2, mom.E_is2[0], 1 / n**2)
-        out["eq10-exact"] = exact
-    if pat == "jittered" and comb == "balance":
-        m = n // n_g
-        j = stratum_integrals(scene, receiver, techs, m) / n_g  # ∫_{D_i^k} f̌ g_k with f̌ = f/(N_g ḡ)
-        i_k = np.array([e.value for e in mom.I_k])
-        eta = sum(i_k[a] * i_k[b] for a in range(n_g) for b in range(a + 1, n_g)) / n_g**2
-        psi_k = ((j.sum(axis=1) ** 2) - (j**2).sum(axis=1)).sum()
-        psi = eta + psi_k - (n_g - 1) / n_g * big_i**2
-        v_avg = (mom.E_hbar2.value - big_i**2) / n
-        out["eq14-printed"] = _form(n_g / n * v_avg + n_g**2 / n**2 * psi, mom.E_hbar2, n_g / n**2)
-        out["eq14-exact"] = exact
-    if comb == "power":
-        out["power-exact"] = exact
-    if comb == "mixture" and pat != "independent":
-        out["mixture-exact"] = exact
-    if pat == "antithetic":
-        out["antithetic-exact"] = exact
-    if pat == "jittered-antithetic":
-        out["jittered-antithetic-exact"] = exact
-    if comb == "balance":
-        power = exact_variance(scene, receiver, Estimator(pat, "power", techs), n, rel_tol=rel_tol)
-        m = est.per_technique(n)
-        out["veach-bound"] = Estimate(power.value + (1 / m - 1 / n) * big_i**2, power.stderr)
-    out["exact"] = exact
+    cell = _Cell(scene, receiver, est, n, mom or moments(scene, receiver, est.techniques), rel_tol)
+    out = Predictions()
+    for form in FORMS:
+        if not form.scope.covers(est):
+            out.reasons[form.name] = f"applies only to {form.scope}"
+            continue
+        value = form.compute(cell)
+        if isinstance(value, str):
+            out.reasons[form.name] = value
+        else:
+            out[form.name] = value
     return out
 
 
 def _form(value: float, source: Estimate, scale: float) -> Estimate:
     """A closed-form prediction ``value`` whose error is that of ``scale`` × one moment."""
     return Estimate(value, abs(scale) * source.stderr)
-
-
-BOUNDS = ("eq17", "eq20", "veach-bound")

@@ -29,6 +29,7 @@ from .reference import reference
 from .scene import Scene
 from .stats import variance_interval
 from .theory import BOUNDS, Moments, moments, predictions
+from .vocabulary import COMBINERS, MATERIALS, PATTERNS
 
 DEFAULT_N = (4, 16, 64, 256, 1024)
 DEFAULT_TRIALS = 400
@@ -36,9 +37,12 @@ Z95 = 1.959963984540054
 
 
 def default_techniques(scene: Scene) -> tuple[str, str]:
-    """Light sampling plus the receivers' BSDF sampling (phong where any receiver is glossy)."""
-    glossy = bool((scene.receivers.material == 2).any())
-    return ("light-solid-angle", "phong") if glossy else ("light-area", "cosine")
+    """Light sampling plus the receivers' BSDF sampling: light-area + cosine where every
+    receiver is diffuse, else light-solid-angle + the lobe of the glossy material (of the
+    lowest code, should there be several)."""
+    materials = [MATERIALS.by_code(c) for c in np.unique(scene.receivers.material)]
+    lobes = [m.bsdf_technique for m in materials if not m.diffuse]
+    return ("light-solid-angle", lobes[0]) if lobes else ("light-area", "cosine")
 
 
 DEFAULT_RECEIVERS = 8
@@ -53,18 +57,22 @@ def default_receivers(scene: Scene) -> list[int]:
 
 
 def default_estimators(techniques: Sequence[str]) -> list[Estimator]:
-    """Every estimator the technique set allows: IS per technique under each pattern, the
-    biased estimator per technique, mixture, balance under each pattern, power."""
+    """Every estimator the technique set allows: each one-technique combiner per technique,
+    then each combiner of several techniques over the set, each under the patterns its
+    registry entry names for verify (``Combiner.verify_under``; all by default)."""
     techs = tuple(techniques)
     out: list[Estimator] = []
     for t in techs:
-        out += [Estimator(p, "single", (t,)) for p in ("independent", "jittered", "antithetic", "jittered-antithetic")]
-        out.append(Estimator("independent", "biased", (t,)))
+        out += [Estimator(p, c.name, (t,)) for c in COMBINERS.values() if not c.several for p in _patterns(c.name)]
     if len(techs) > 1:
-        out += [Estimator(p, "mixture", techs) for p in ("independent", "jittered")]
-        out += [Estimator(p, "balance", techs) for p in ("independent", "jittered", "antithetic", "jittered-antithetic")]
-        out += [Estimator(p, "power", techs) for p in ("independent", "jittered")]
+        out += [Estimator(p, c.name, techs) for c in COMBINERS.values() if c.several for p in _patterns(c.name)]
     return out
+
+
+def _patterns(combiner: str) -> tuple[str, ...]:
+    """The patterns verify runs ``combiner`` under by default."""
+    under = COMBINERS[combiner].verify_under
+    return tuple(PATTERNS) if under is None else under
 
 
 @dataclass
