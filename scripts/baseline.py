@@ -42,6 +42,7 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 from warpis.engine import default_threads, select_receivers
 from warpis.errors import WarpisError
 from warpis.estimators import parse_estimator
+from warpis.device import upload
 from warpis.scene import Scene
 from warpis.testing import orthonormal_frame
 from warpis.vocabulary import MATERIALS, grid_shape
@@ -131,15 +132,17 @@ class BaselineScene:
 
 
 def baseline_scene(scene: Scene | BaselineScene) -> BaselineScene:
-    """The :class:`BaselineScene` of ``scene``, built (BVHs included) once and cached on it."""
+    """The :class:`BaselineScene` of ``scene``, built (BVHs included) once per content,
+    kept with its upload (:meth:`warpis.device.DeviceScene.cached`)."""
     if isinstance(scene, BaselineScene):
         return scene
-    cached = getattr(scene, "_baseline_scene", None)
-    if cached is None:
-        cached = BaselineScene.build(scene)
-        cached.warm_up()  # before any worker thread can race to build the BVHs
-        scene._baseline_scene = cached
-    return cached
+    return upload(scene).cached("baseline", lambda: _built(scene))
+
+
+def _built(scene: Scene) -> BaselineScene:
+    built = BaselineScene.build(scene)
+    built.warm_up()  # before any worker thread can race to build the BVHs
+    return built
 
 
 # --------------------------------------------------------------------------- receivers

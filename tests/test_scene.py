@@ -1,6 +1,6 @@
 """Tests of warpis.scene: the scene-file loader, its validation, and the Warp mesh it builds.
 
-Three parts:
+Four parts:
 
 * the loader on the bundled scenes and on small scenes written here (counts, emitter
   areas and CDFs, receivers and materials, transforms, receiver groups and grids, every
@@ -10,13 +10,18 @@ Three parts:
   ``warpis: error:`` line on stderr and nothing on stdout;
 * ray casting through ``scene.data.mesh`` (``wp.mesh_query_ray``) against a brute-force
   float64 Möller–Trumbore first hit over every triangle, on rays from each receiver's
-  shading point to the emitters.
+  shading point to the emitters;
+* scenes as plain data: ``Scene.from_arrays`` against the same scene file, its one-line
+  errors, the content digest, pickling, and the upload cache per (digest, device).
 """
 
 from __future__ import annotations
 
+import io
 import math
+import pickle
 import tomllib
+from dataclasses import fields, replace
 from importlib import resources
 from pathlib import Path
 
@@ -29,6 +34,7 @@ from conftest import BUNDLED, floor_entry, light_entry, quad, run_warpis, write_
 import warpis
 from warpis.errors import WarpisError
 from warpis.integrand import incident_radiance
+from warpis.device import clear_device_cache, device_cache_keys
 from warpis.scene import SELF_HIT_SLAB, SceneData, load_scene
 from warpis.vocabulary import MATERIALS
 
@@ -777,3 +783,234 @@ def test_every_registered_material_loads_and_requires_its_keys(name, tmp_path):
         with pytest.raises(WarpisError, match=f"missing key '{key}'") as err:
             load_scene(write_scene(tmp_path / f"no-{key}", material={k: v for k, v in table.items() if k != key}))
         assert "\n" not in str(err.value)
+
+
+# =========================================================================== scenes as plain data
+
+_FLOOR_V, _FLOOR_F = quad((0.0, 0.0, 0.0), 2.0, "up")
+_LIGHT_V, _LIGHT_F = quad((0.0, 0.0, 1.0), 0.5, "down")
+_POINTS = [[0.0, 0.0, 0.0], [1.5, 0.25, 0.0]]
+
+
+def _arrays(**changes) -> dict:
+    """Keyword arguments of Scene.from_arrays for the floor and light of ``_toml_twin``."""
+    args = dict(vertices=np.vstack([_FLOOR_V, _LIGHT_V]), triangles=np.vstack([_FLOOR_F, _LIGHT_F + 4]),
+                emission=[0.0, 0.0, 10.0, 10.0], positions=_POINTS, normals=[0.0, 0.0, 1.0],
+                material="lambert", albedo=0.5, name="twin")
+    return args | changes
+
+
+def _toml_twin(directory: Path, filename: str = "scene.toml") -> Path:
+    """The scene of ``_arrays()`` as a scene file (OBJ floats round-trip exactly)."""
+    return write_scene(directory, meshes=[{"path": "floor.obj", "vertices": _FLOOR_V, "faces": _FLOOR_F},
+                                          {"path": "light.obj", "vertices": _LIGHT_V, "faces": _LIGHT_F,
+                                           "emission": 10.0}],
+                       receivers={"points": _POINTS, "normal": [0.0, 0.0, 1.0]},
+                       material={"type": "lambert", "albedo": 0.5}, filename=filename)
+
+
+def test_from_arrays_is_the_scene_file_scene(tmp_path):
+    """The same content from a scene file and from arrays: the same arrays, the same
+    digest, one upload, bit-identical trials; only the labels differ."""
+    from warpis.engine import run_trials
+
+    clear_device_cache()
+    from_file = load_scene(_toml_twin(tmp_path))
+    from_arrays = warpis.Scene.from_arrays(**_arrays())
+    for name in ("vertices", "triangles", "emission", "emitters", "emitter_areas"):
+        np.testing.assert_array_equal(getattr(from_file, name), getattr(from_arrays, name), err_msg=name)
+    for name in ("positions", "normals", "material", "albedo", "exponent", "view"):
+        np.testing.assert_array_equal(getattr(from_file.receivers, name), getattr(from_arrays.receivers, name))
+    assert from_file.digest == from_arrays.digest
+    assert from_file.mesh_names == ["floor.obj", "light.obj"] and from_arrays.mesh_names == ["twin"]
+    assert from_arrays.path is None and from_arrays.summary()["path"] is None
+    a = run_trials(from_file, "independent:balance:light-area+cosine", 8, 64, seed=3)
+    b = run_trials(from_arrays, "independent:balance:light-area+cosine", 8, 64, seed=3)
+    np.testing.assert_array_equal(a, b)
+    assert device_cache_keys() == [(from_file.digest, "cpu")]
+
+
+def test_from_arrays_broadcasts_and_normalises():
+    """Per-receiver values may be one for all; normals and views are normalised; groups,
+    grid shape, material codes and mesh labels are kept."""
+    s = warpis.Scene.from_arrays(**_arrays(
+        positions=[[x, y, 0.0] for y in (-0.5, 0.5) for x in (-1.0, 0.0, 1.0)], normals=[0.0, 0.0, 2.0],
+        material=[0, 1, 2, 2, 1, 0], exponent=20.0, view=[0.0, 3.0, 4.0], group=[0, 0, 0, 1, 1, 1],
+        group_names=["near", "far"], grid_shape=(2, 3), triangle_mesh=[0, 0, 1, 1], mesh_names=["floor", "lamp"]))
+    rx = s.receivers
+    np.testing.assert_array_equal(rx.normals, np.tile([0.0, 0.0, 1.0], (6, 1)))
+    np.testing.assert_allclose(rx.view, np.tile([0.0, 0.6, 0.8], (6, 1)))
+    assert rx.material.dtype == np.int32 and [rx.material_name(i) for i in (0, 1, 2)] == list(MATERIALS)
+    np.testing.assert_array_equal(rx.exponent, np.full(6, 20.0))
+    assert rx.group_names == ["near", "far"] and rx.grid_shape == (2, 3)
+    assert s.mesh_names == ["floor", "lamp"] and list(s.triangle_mesh) == [0, 0, 1, 1]
+    assert not s.vertices.flags.writeable and not rx.positions.flags.writeable
+
+
+def _mutations(scene: warpis.Scene) -> dict:
+    """One changed copy of ``scene`` per array of DIGEST_FIELDS (and a changed dtype)."""
+    rx = scene.receivers
+
+    def nudged(a: np.ndarray) -> np.ndarray:
+        out = np.array(a)
+        out.flat[-1] = np.nextafter(out.flat[-1], np.inf) if out.dtype.kind == "f" else out.flat[-1] + 1
+        return out
+
+    out = {name: replace(scene, **{name: nudged(getattr(scene, name))}) for name in ("vertices", "emission")}
+    out["triangles"] = replace(scene, triangles=scene.triangles[:, [1, 2, 0]])  # same triangles, other order
+    out["triangles dtype"] = replace(scene, triangles=scene.triangles.astype(np.int64))
+    for name in ("positions", "normals", "albedo", "exponent", "view"):
+        out[f"receivers.{name}"] = replace(scene, receivers=replace(rx, **{name: nudged(getattr(rx, name))}))
+    out["receivers.material"] = replace(scene, receivers=replace(rx, material=np.zeros_like(rx.material)))
+    return out
+
+
+def test_digest_changes_with_every_result_array(tmp_path):
+    """Changing any array that a result depends on (by one ulp, one index, its dtype)
+    changes the digest; the labels (name, description, path, mesh names, triangle → mesh,
+    receiver groups) and the device do not."""
+    from warpis.scene import DIGEST_FIELDS
+
+    scene = load_scene(_toml_twin(tmp_path))
+    changed = _mutations(scene)
+    assert {k.split(" ")[0] for k in changed} == set(DIGEST_FIELDS)
+    digests = {name: s.digest for name, s in changed.items()}
+    assert scene.digest not in digests.values() and len(set(digests.values())) == len(digests), digests
+    rx = scene.receivers
+    labels = [replace(scene, name="other", description="d", path=tmp_path / "x.toml", mesh_names=["a", "b"],
+                      triangle_mesh=np.zeros(4, np.int32)),
+              replace(scene, receivers=replace(rx, group_names=["g"], grid_shape=(1, 2))), scene.on("cpu")]
+    assert all(s.digest == scene.digest for s in labels)
+
+
+def test_digest_and_cell_key_survive_moving_the_file(tmp_path):
+    """A scene file copied elsewhere under another name (meshes beside it) has the same
+    digest, and a study of it the same cell keys (name given in the file)."""
+    from warpis.study import scene_digest, study_from_dict
+
+    first = _toml_twin(tmp_path / "a")
+    second = _toml_twin(tmp_path / "elsewhere" / "b", filename="renamed.toml")
+    assert load_scene(first).digest == load_scene(second).digest == scene_digest(load_scene(second))
+    table = {"name": "s", "trials": 100, "n": [4], "estimators": ["independent:single:cosine"]}
+    keys = [[c.key for c in study_from_dict(table | {"scenes": [source]}, "t", base).cells()]
+            for source, base in (("a/scene.toml", tmp_path), ("b/renamed.toml", tmp_path / "elsewhere"))]
+    assert keys[0] == keys[1]
+
+
+def test_scene_pickles_without_warp_objects(tmp_path):
+    """A scene pickles to little more than its arrays (no Warp object, nothing cached),
+    comes back read-only with the same digest, and an unpickled scene uploaded afresh
+    gives bit-identical trials."""
+    from warpis.engine import run_trials
+
+    scene = load_scene("two-lights")
+    expected = run_trials(scene, "jittered:balance:light-solid-angle+cosine", 8, 128, seed=5)
+    blob = pickle.dumps(scene)
+    arrays = sum(a.nbytes for a in (scene.vertices, scene.triangles, scene.emission, scene.triangle_mesh))
+    arrays += sum(getattr(scene.receivers, n).nbytes for n in ("positions", "normals", "material", "albedo",
+                                                                "exponent", "view", "group"))
+    assert len(blob) < arrays + 4096, (len(blob), arrays)
+    modules = set()
+
+    class Recording(pickle.Unpickler):
+        def find_class(self, module, name):
+            modules.add(module)
+            return super().find_class(module, name)
+
+    clear_device_cache()
+    back = Recording(io.BytesIO(blob)).load()
+    assert not [m for m in modules if m.split(".")[0] == "warp"], modules
+    assert back.digest == scene.digest and not back.vertices.flags.writeable
+    assert not back.receivers.normals.flags.writeable
+    np.testing.assert_array_equal(run_trials(back, "jittered:balance:light-solid-angle+cosine", 8, 128, seed=5),
+                                  expected)
+
+
+def test_device_cache_builds_once_per_digest_and_device(tmp_path, monkeypatch):
+    """Two loads of one file, its twin from arrays and an unpickled copy share one upload
+    (mesh, structs, slabs, light table, theory's memo); another content builds another;
+    nothing is attached to the scenes."""
+    from warpis import device
+    from warpis.techniques import light_table
+
+    builds = []
+    real = device._build
+    monkeypatch.setattr(device, "_build", lambda scene, dev: builds.append(dev) or real(scene, dev))
+    clear_device_cache()
+    path = _toml_twin(tmp_path)
+    scenes = [load_scene(path), load_scene(path), warpis.Scene.from_arrays(**_arrays())]
+    scenes.append(pickle.loads(pickle.dumps(scenes[0])))
+    tables = {id(light_table(s)) for s in scenes}
+    assert all(s.data.mesh == scenes[0].data.mesh for s in scenes) and len(tables) == 1
+    np.testing.assert_array_equal(scenes[3].slab, scenes[0].slab)
+    assert builds == ["cpu"]
+    other = warpis.Scene.from_arrays(**_arrays(emission=[0.0, 0.0, 10.0, 20.0]))
+    assert other.data.mesh != scenes[0].data.mesh and builds == ["cpu", "cpu"]
+    allowed = {f.name for f in fields(warpis.Scene)} | {"digest", "emitters", "emitter_areas"}
+    for s in scenes:
+        assert set(vars(s)) <= allowed, set(vars(s)) - allowed
+
+
+def _bad_arrays() -> dict:
+    """name → (Scene.from_arrays changes, words of the problem): each wrong in one way."""
+    nan_vertex = _arrays()["vertices"].copy()
+    nan_vertex[5, 2] = math.nan
+    flat = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0]])
+    return {
+        "nan-vertex": (dict(vertices=nan_vertex), "vertices: point 5 is NaN or infinite"),
+        "huge-vertex": (dict(vertices=_arrays()["vertices"] * 1e16), "coordinate of magnitude"),
+        "vertices-2d": (dict(vertices=_arrays()["vertices"][:, :2]), "vertices: expected shape (V, 3), got (8, 2)"),
+        "vertices-text": (dict(vertices=[["a", "b", "c"]] * 8), "vertices: expected real numbers"),
+        "ragged-triangles": (dict(triangles=[[0, 1, 2], [0, 2]]), "triangles: not a rectangular array of numbers"),
+        "float-triangles": (dict(triangles=_arrays()["triangles"] + 0.5), "triangles: expected integers"),
+        "index-out-of-range": (dict(triangles=[[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 8]]),
+                               "triangle 3 refers to vertex 8, which does not exist"),
+        "negative-index": (dict(triangles=[[0, 1, 2], [0, 2, 3], [4, -1, 6], [4, 6, 7]]), "refers to vertex -1"),
+        "emission-length": (dict(emission=[0.0, 10.0]), "emission: expected shape (T,) = (4,), got (2,)"),
+        "nan-emission": (dict(emission=[0.0, 0.0, math.nan, 10.0]), "emission[2]: must be a finite number"),
+        "negative-emission": (dict(emission=[0.0, -1.0, 10.0, 10.0]), "emission[1]"),
+        "huge-emission": (dict(emission=[0.0, 0.0, 1e39, 10.0]), "outside the range the float32 kernels"),
+        "no-emitter": (dict(emission=np.zeros(4)), "the scene has no emitter"),
+        "degenerate-emitter": (dict(vertices=np.vstack([_FLOOR_V, flat]), triangles=[[0, 1, 2], [0, 2, 3], [4, 5, 6]],
+                                    emission=[0.0, 0.0, 1.0]), "mesh 'bad': every emitter triangle has zero area"),
+        "material-code": (dict(material=[0, 7]), "code 7 of receiver 1 is not a material (valid: 0 irradiance"),
+        "material-name": (dict(material="mirror"), "unknown material 'mirror'"),
+        "zero-normal": (dict(normals=[[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]), "normals: entry 1 has zero length"),
+        "nan-normal": (dict(normals=[math.nan, 0.0, 1.0]), "normals: entry 0 is NaN or infinite"),
+        "normals-shape": (dict(normals=np.ones((3, 3))), "normals: expected shape (3,) or (2, 3)"),
+        "zero-view": (dict(view=[0.0, 0.0, 0.0]), "view: entry 0 has zero length"),
+        "no-receivers": (dict(positions=np.zeros((0, 3))), "positions: expected shape (R, 3)"),
+        "nan-receiver": (dict(positions=[[0.0, 0.0, 0.0], [math.inf, 0.0, 0.0]]), "point 1 is NaN or infinite"),
+        "negative-albedo": (dict(albedo=[0.5, -0.5]), "albedo[1]: must be a finite number >= 0"),
+        "subnormal-exponent": (dict(exponent=1e-45), "exponent[0]"),
+        "group-out-of-range": (dict(group=[0, 1]), "group: receiver 1 is in group 1"),
+        "grid-shape": (dict(grid_shape=(3, 3)), "grid_shape: expected (rows, cols) with rows × cols = 2"),
+        "mesh-out-of-range": (dict(triangle_mesh=[0, 0, 1, 2], mesh_names=["a", "b"]), "triangle 3 is in mesh 2"),
+    }
+
+
+@pytest.mark.parametrize("case", list(_bad_arrays()))
+def test_from_arrays_refuses_bad_arrays(case):
+    """Each bad array gives one line naming the scene, the array and the problem (the
+    checks of a scene file, limits.py's float32 ranges among them)."""
+    changes, problem = _bad_arrays()[case]
+    with pytest.raises(WarpisError) as info:
+        warpis.Scene.from_arrays(**_arrays(name="bad", **changes))
+    message = str(info.value)
+    assert "\n" not in message and message.startswith("scene 'bad': "), message
+    assert problem in message, message
+
+
+def test_from_arrays_refuses_a_device_that_does_not_exist():
+    with pytest.raises(WarpisError, match="unknown device"):
+        warpis.Scene.from_arrays(**_arrays(device="tpu"))
+
+
+def test_readme_from_arrays_example_runs():
+    """The README's from-arrays example (between its markers) runs as written."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    code = readme.split("<!-- from-arrays:begin -->\n```python\n", 1)[1].split("```", 1)[0]
+    namespace: dict = {}
+    exec(compile(code, "README.md", "exec"), namespace)
+    scene = namespace["scene"]
+    assert scene.emitter_count == 2 and len(scene.receivers) == 2 and namespace["x"].shape == (2, 1000)

@@ -118,7 +118,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     for m in np.unique(scene.triangle_mesh[scene.emitters]):
         mine = scene.triangle_mesh[scene.emitters] == m
         emitters.append({
-            "mesh": scene.mesh_paths[m], "triangles": int(mine.sum()),
+            "mesh": scene.mesh_names[m], "triangles": int(mine.sum()),
             "radiance": float(scene.emitter_radiance[mine][0]),
             "area": float(scene.emitter_areas[mine].sum()),
             "power": float((scene.emitter_areas[mine] * scene.emitter_radiance[mine]).sum()),
@@ -168,14 +168,14 @@ def cmd_reference(args: argparse.Namespace) -> int:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
+    from .cell import check_trials
     from .engine import run_moments
     from .estimators import parse_estimator
     from .reference import reference
 
     est = parse_estimator(args.estimator)
     est.check_n(args.n)
-    if args.trials < 2:
-        raise WarpisError(f"--trials must be at least 2 to measure a variance (got {args.trials})")
+    check_trials(args.trials)  # the one floor of verify and study: it reports a variance interval too
     scene = _load(args)
     with _progress(args.trials, "trials") as bar:  # running moments: memory flat in --trials
         moments = run_moments(scene, est, args.n, args.trials, seed=args.seed, receivers=args.receivers,

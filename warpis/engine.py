@@ -28,6 +28,7 @@ import numpy as np
 import warp as wp
 
 from . import limits
+from .device import DeviceScene, upload
 from .errors import WarpisError
 from .estimators import Estimator, KernelArgs, parse_estimator, trial_kernel
 from .scene import Scene
@@ -83,6 +84,7 @@ class _Job:
     trials: int
     head: tuple  # kernel inputs before the trial offset
     tail: tuple  # kernel inputs between the trial offset and the output
+    upload: DeviceScene  # owns the mesh and BVH that head's struct knows by id only
 
     def launch(self, start: int, count: int, buf: wp.array) -> None:
         """Trials start..start+count−1 of every receiver into columns 0..count−1 of ``buf``."""
@@ -99,11 +101,12 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     seed = limits.seed(seed)
     args = KernelArgs.of(est, n)
     rx = select_receivers(scene, receivers)
-    dev = scene.device
-    head = (scene.data, scene.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))
+    up = upload(scene)
+    dev = up.device
+    head = (up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
     tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols)
-    return _Job(dev, est.spec, len(rx), n, trials, head, tail)
+    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up)
 
 
 def _chunk_size(job: _Job, chunk: int | None, workers: int) -> int:

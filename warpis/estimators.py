@@ -28,7 +28,7 @@ from .errors import WarpisError
 from .integrand import ShadingPoint, integrand, shading_point
 from .patterns import pattern_point
 from .rng import stream, uniform
-from .scene import ReceiverData, SceneData
+from .device import ReceiverData, SceneData
 from .techniques import LightTable, sample_direction, technique_pdf
 from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Combiner, Pattern, grid_shape
 

@@ -22,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .scene import ReceiverData, Scene, SceneData
+from .device import ReceiverData, SceneData, upload
+from .scene import Scene
 from .vocabulary import MATERIALS
 from .warps import INV_2PI, INV_PI
 
@@ -112,8 +113,9 @@ def _integrand_kernel(scene: SceneData, recv: ReceiverData, r: wp.int32,
 
 def evaluate_integrand(scene: Scene, receiver: int, directions: np.ndarray) -> np.ndarray:
     """f at receiver ``receiver`` for each row of ``directions`` (K, 3) → (K,) float64."""
-    dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=scene.device)
-    out = wp.zeros(len(directions), dtype=wp.float64, device=scene.device)
-    wp.launch(_integrand_kernel, dim=len(directions), inputs=[scene.data, scene.receiver_data, receiver, dirs, out],
-              device=scene.device)
+    up = upload(scene)  # held until the launch is done: the struct knows its mesh by id only
+    dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=up.device)
+    out = wp.zeros(len(directions), dtype=wp.float64, device=up.device)
+    wp.launch(_integrand_kernel, dim=len(directions), inputs=[up.data, up.receiver_data, receiver, dirs, out],
+              device=up.device)
     return out.numpy()

@@ -111,6 +111,16 @@ def float32_value(value: float, what: str) -> float:
     return float(value)
 
 
+def float32_values(values: np.ndarray, what: str) -> None:
+    """:func:`float32_value` for every entry of an array; the first bad entry is named."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    with np.errstate(invalid="ignore"):
+        ok = (v == 0) | ((v >= FLOAT32_TINY) & (v <= MAX_VALUE))  # False for NaN
+    if not ok.all():
+        i = int(np.argmin(ok))
+        float32_value(float(v[i]), f"{what}[{i}]")
+
+
 def coordinates(points: np.ndarray, what: str) -> None:
     """Refuse NaN/inf or coordinates beyond ``MAX_COORDINATE`` (float32 kernels square them)."""
     if points.size == 0:

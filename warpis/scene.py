@@ -1,87 +1,91 @@
-"""Scene files (TOML) → one Warp mesh, emitter tables, receivers and their materials.
+"""Scenes as plain data: geometry, emission and receivers in numpy, named by their content.
 
-A scene file lists meshes in any format trimesh reads, each with an optional transform
-and an optional one-sided ``emission``; receivers (explicit points or grids, in one or
-several groups) and the material at the receivers.  See README.md ("Scene files") for
-the format.  Everything is validated before any Warp array is made: bad input raises
-:class:`~warpis.errors.WarpisError` with one line naming the file and the problem.
+A :class:`Scene` comes from one of two sources, and both pass the same checks
+(:func:`_assemble`) before anything reaches a device:
+
+* a scene file (TOML, :func:`load_scene`) listing meshes in any format trimesh reads,
+  each with an optional transform and an optional one-sided ``emission``, receivers
+  (explicit points or grids, in one or several groups) and the material at the
+  receivers (README.md, "Scene files");
+* arrays (:meth:`Scene.from_arrays`).
+
+Bad input raises :class:`~warpis.errors.WarpisError` with one line naming the file (or
+the scene) and the problem.  A Scene holds read-only numpy arrays and the name of its
+Warp device, nothing else: it pickles, and :attr:`Scene.digest` names its content.
+Its Warp side (mesh, BVH, structs, self-hit slabs, light table) is built by
+:func:`warpis.device.upload` once per (digest, device); ``scene.data``,
+``scene.receiver_data`` and ``scene.slab`` fetch it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import math
-import re
 import tomllib
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import trimesh
-import warp as wp
 
 from . import limits
+from .device import SELF_HIT_SLAB, DeviceScene, ReceiverData, SceneData, check_device, upload
 from .errors import WarpisError, fail
 from .vocabulary import MATERIALS, Material
+
+__all__ = ["DIGEST_FIELDS", "SELF_HIT_SLAB", "DeviceScene", "ReceiverData", "Receivers", "Scene", "SceneData",
+           "bundled_scenes", "check_device", "load_scene", "read_toml", "resolve_scene_path", "upload"]
 
 # Emitter triangles whose area is below this fraction of their longest edge squared are
 # needles: no float32 ray can hit them reliably nor can they be sampled with a finite pdf.
 DEGENERATE_AREA = 1e-12
-# Self-hit slab, relative to the float32 magnitude of the coordinates around a receiver:
-# rays ignore surfaces within this height above the receiver's tangent plane (see
-# integrand.py).  2^-16 is 128 float32 ulps: far above the rounding of Warp's watertight
-# ray-triangle test, and second order in F (docs/theory.md, "The integrand at a receiver").
-SELF_HIT_SLAB = 2.0**-16
+
+# The arrays the digest hashes, in this order: every array a result depends on.  Names,
+# the description, the path, mesh names, the triangle → mesh index and receiver groups
+# only label things (warpis info, figures), so renaming or moving a file keeps the digest.
+DIGEST_FIELDS = ("vertices", "triangles", "emission", "receivers.positions", "receivers.normals",
+                 "receivers.material", "receivers.albedo", "receivers.exponent", "receivers.view")
+_DIGEST_FORMAT = b"warpis scene digest 1\0"  # a new encoding below gets a new number
 
 
-@wp.struct
-class SceneData:
-    """Everything a kernel needs to cast rays and sample the emitters of a scene."""
-
-    mesh: wp.uint64  # every triangle: emitters occlude too
-    emitter_bvh: wp.uint64  # bounds of the emitter triangles, for light-sampling pdfs
-    points: wp.array(dtype=wp.vec3)
-    indices: wp.array(dtype=wp.int32)  # 3 per triangle, into points
-    tri_emission: wp.array(dtype=wp.float32)  # radiance of each triangle's front face
-    emitter_tri: wp.array(dtype=wp.int32)  # emitter k → triangle index in `mesh`
-    emitter_area: wp.array(dtype=wp.float32)
-    area_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1
-    power_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1 (radiance × area)
-    total_area: wp.float32
-    total_power: wp.float32  # Σ radiance × area
-    emitter_count: wp.int32
+def _freeze(obj: Any, names: Sequence[str]) -> None:
+    """Replace the arrays ``names`` of a frozen dataclass by read-only views: the digest
+    is computed once, so nothing may change the arrays under it."""
+    for name in names:
+        view = np.asarray(getattr(obj, name)).view()
+        view.flags.writeable = False
+        object.__setattr__(obj, name, view)
 
 
-@wp.struct
-class ReceiverData:
-    """Receiver points, normals and the material of each."""
-
-    position: wp.array(dtype=wp.vec3)
-    normal: wp.array(dtype=wp.vec3)
-    material: wp.array(dtype=wp.int32)  # vocabulary.MATERIALS code
-    albedo: wp.array(dtype=wp.float32)
-    exponent: wp.array(dtype=wp.float32)
-    view: wp.array(dtype=wp.vec3)  # unit direction towards the viewer
-    slab: wp.array(dtype=wp.float32)  # self-hit slab height above the tangent plane
+_RECEIVER_ARRAYS = ("positions", "normals", "material", "albedo", "exponent", "view", "group")
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class Receivers:
-    """Receiver points with their normals and materials (numpy, float64)."""
+    """Receiver points with their normals and materials (numpy, read-only)."""
 
-    positions: np.ndarray  # (R, 3)
-    normals: np.ndarray  # (R, 3), unit
-    material: np.ndarray  # (R,) int, vocabulary.MATERIALS code
-    albedo: np.ndarray  # (R,)
-    exponent: np.ndarray  # (R,)
-    view: np.ndarray  # (R, 3), unit
-    group: np.ndarray  # (R,) int, index into group_names
+    positions: np.ndarray  # (R, 3) float64
+    normals: np.ndarray  # (R, 3) float64, unit
+    material: np.ndarray  # (R,) int32, vocabulary.MATERIALS code
+    albedo: np.ndarray  # (R,) float64
+    exponent: np.ndarray  # (R,) float64
+    view: np.ndarray  # (R, 3) float64, unit
+    group: np.ndarray  # (R,) int32, index into group_names
     group_names: list[str] = field(default_factory=list)
     grid_shape: tuple[int, int] | None = None  # (rows, cols) when the only group is a grid
+
+    def __post_init__(self) -> None:
+        _freeze(self, _RECEIVER_ARRAYS)
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)  # unpickled arrays are writable: freeze them again
+        _freeze(self, _RECEIVER_ARRAYS)
 
     def __len__(self) -> int:
         return len(self.positions)
@@ -95,26 +99,142 @@ class Receivers:
         return self.material_of(index).name
 
 
-@dataclass
+_SCENE_ARRAYS = ("vertices", "triangles", "emission", "triangle_mesh")
+
+
+@dataclass(frozen=True, eq=False)
 class Scene:
-    """A loaded scene: geometry, emitters and receivers, in numpy and on a Warp device."""
+    """A scene as plain data: geometry, emission and receivers in numpy (read-only), and
+    the Warp device its kernels run on.
+
+    Build one with :func:`load_scene` or :meth:`from_arrays`, which validate; the
+    dataclass constructor (and :func:`dataclasses.replace`) checks nothing.
+    """
 
     name: str
-    path: Path
-    device: str
     vertices: np.ndarray  # (V, 3) float64, transformed
     triangles: np.ndarray  # (T, 3) int32
-    triangle_mesh: np.ndarray  # (T,) index of the [[mesh]] entry each triangle comes from
-    mesh_paths: list[str]
-    emission: np.ndarray  # (T,) radiance of each triangle's front face
-    emitters: np.ndarray  # (E,) triangle index of each emitter triangle
-    emitter_areas: np.ndarray  # (E,)
+    emission: np.ndarray  # (T,) float64: radiance of each triangle's front face, 0 for no emitter
     receivers: Receivers
+    triangle_mesh: np.ndarray  # (T,) int32: index into mesh_names of the mesh each triangle comes from
+    mesh_names: list[str]  # a scene file's [[mesh]] paths as written; labels for arrays
     description: str = ""
-    slab: np.ndarray | None = None  # (R,) self-hit slab height of each receiver (see upload)
-    data: Any = None  # SceneData on `device`
-    receiver_data: Any = None  # ReceiverData on `device`
-    _keep: list = field(default_factory=list, repr=False)  # Warp objects the structs point into
+    path: Path | None = None  # the scene file, for a scene loaded from one
+    device: str = "cpu"  # Warp device of scene.data and of every kernel run on this scene
+
+    def __post_init__(self) -> None:
+        _freeze(self, _SCENE_ARRAYS)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The fields only: cached values (digest, emitters) are recomputed after loading.
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        _freeze(self, _SCENE_ARRAYS)
+
+    @classmethod
+    def from_arrays(cls, vertices: Any, triangles: Any, emission: Any, positions: Any, normals: Any, *,
+                    material: str | Any = "irradiance", albedo: Any = 1.0, exponent: Any = 1.0,
+                    view: Any = (0.0, 0.0, 1.0), group: Any = None, group_names: Sequence[str] | None = None,
+                    grid_shape: tuple[int, int] | None = None, triangle_mesh: Any = None,
+                    mesh_names: Sequence[str] | None = None, name: str = "arrays", description: str = "",
+                    device: str = "cpu") -> Scene:
+        """A validated scene from arrays, with the same checks as a scene file.
+
+        Parameters
+        ----------
+        vertices, triangles
+            (V, 3) coordinates and (T, 3) integer vertex indices; a triangle's front face
+            is the one its vertices wind counter-clockwise around.
+        emission
+            (T,) radiance of each triangle's front face (0: not an emitter).
+        positions, normals
+            (R, 3) receiver points and their normals (one (3,) normal for all, or (R, 3));
+            normals are normalised.
+        material
+            A material name (``"irradiance"``, ``"lambert"``, ``"phong"``) for every
+            receiver, or the ``vocabulary.MATERIALS`` code of each (one or (R,)).
+        albedo, exponent, view
+            Material parameters, one for all or one per receiver; ``view`` (the direction
+            towards the viewer, normalised) is (3,) or (R, 3).
+        group, group_names, grid_shape
+            Receiver group index of each receiver (default 0) and the groups' names
+            (default ``["receivers"]``); (rows, cols) when the receivers form a grid.
+        triangle_mesh, mesh_names
+            Index of the mesh each triangle belongs to (default 0) and mesh names
+            (default ``[name]``): labels for ``warpis info`` and messages.
+        name, description, device
+            Labels, and the Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``).
+
+        Raises
+        ------
+        WarpisError
+            One line, ``scene '<name>': <array>: <problem>``, for any invalid array.
+        """
+        if not isinstance(name, str) or not isinstance(description, str):
+            raise WarpisError(f"Scene.from_arrays: name and description must be strings, got {name!r}, "
+                              f"{description!r}")
+        where = f"scene {name!r}"
+        check_device(device)
+        rx = _receivers_from_arrays(where, positions, normals, material, albedo, exponent, view, group,
+                                    group_names, grid_shape)
+        names = [name] if mesh_names is None else mesh_names
+        return _assemble(where, lambda m: f"{where}: mesh {names[m]!r}", "give some triangle an emission > 0",
+                         name=name, vertices=vertices, triangles=triangles, emission=emission, receivers=rx,
+                         triangle_mesh=triangle_mesh, mesh_names=names, description=description,
+                         device=str(device))
+
+    def on(self, device: str) -> Scene:
+        """The same scene with its kernels on ``device``."""
+        return replace(self, device=check_device(device))
+
+    @cached_property
+    def digest(self) -> str:
+        """sha256 (hex) of the arrays in ``DIGEST_FIELDS``: each one's name, dtype, shape
+        and little-endian bytes.  Equal digests mean equal results."""
+        h = hashlib.sha256(_DIGEST_FORMAT)
+        for name in DIGEST_FIELDS:
+            a = self
+            for part in name.split("."):
+                a = getattr(a, part)
+            a = np.ascontiguousarray(a, dtype=a.dtype.newbyteorder("<"))
+            h.update(f"{name} {a.dtype.str} {a.shape}\0".encode())
+            h.update(a.tobytes())
+        return h.hexdigest()
+
+    # ----------------------------------------------------------------- on the device
+
+    @property
+    def data(self) -> SceneData:
+        """The SceneData struct on ``device`` (see :func:`warpis.device.upload`)."""
+        return upload(self).data
+
+    @property
+    def receiver_data(self) -> ReceiverData:
+        """The ReceiverData struct on ``device``."""
+        return upload(self).receiver_data
+
+    @property
+    def slab(self) -> np.ndarray:
+        """(R,) self-hit slab height of each receiver, as computed on ``device``."""
+        return upload(self).slab
+
+    # ----------------------------------------------------------------- derived numbers
+
+    @cached_property
+    def emitters(self) -> np.ndarray:
+        """(E,) int32 index of each emitter triangle (emission > 0)."""
+        out = np.flatnonzero(self.emission > 0).astype(np.int32)
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def emitter_areas(self) -> np.ndarray:
+        """(E,) area of each emitter triangle."""
+        out = _triangle_areas(self.vertices, self.triangles)[self.emitters]
+        out.flags.writeable = False
+        return out
 
     @property
     def triangle_count(self) -> int:
@@ -151,7 +271,7 @@ class Scene:
         """Counts and emitter totals, as printed by ``warpis scenes`` and ``warpis info``."""
         return {
             "scene": self.name,
-            "path": str(self.path),
+            "path": None if self.path is None else str(self.path),
             "triangles": self.triangle_count,
             "emitter_triangles": self.emitter_count,
             "receivers": len(self.receivers),
@@ -177,19 +297,26 @@ def bundled_scenes() -> list[str]:
     return sorted(p.name for p in root.iterdir() if p.is_dir() and (p / "scene.toml").is_file())
 
 
-def resolve_scene_path(name_or_path: str | Path) -> Path:
-    """A bundled scene's name or a path to a scene file → the scene file's path."""
+def resolve_scene_path(name_or_path: str | Path, base: Path | None = Path()) -> Path:
+    """A path to a scene file (or to a folder holding ``scene.toml``), else a bundled
+    scene's name → the scene file's path.
+
+    Relative paths are taken from ``base`` (the working directory by default; a study's
+    folder for its scenes); ``base=None`` accepts bundled names only.
+    """
     text = str(name_or_path)
-    candidate = Path(text)
-    if candidate.is_file():
-        return candidate
-    if candidate.is_dir() and (candidate / "scene.toml").is_file():
-        return candidate / "scene.toml"
+    if base is not None:
+        candidate = base / text
+        if candidate.is_file():
+            return candidate
+        if candidate.is_dir() and (candidate / "scene.toml").is_file():
+            return candidate / "scene.toml"
     bundled = _bundled_root() / text / "scene.toml"
-    if "/" not in text and bundled.is_file():
+    if "/" not in text and "\\" not in text and bundled.is_file():
         return Path(str(bundled))
     names = ", ".join(bundled_scenes())
-    raise fail(text, f"no such scene file or bundled scene (bundled: {names})")
+    where = text if base is None or base == Path() else base / text
+    raise fail(where, f"no such scene file or bundled scene (bundled: {names})")
 
 
 # --------------------------------------------------------------------------- TOML checks
@@ -235,19 +362,16 @@ def _float32(value: float, what: str, file: Path) -> float:
         raise fail(file, str(exc)) from None
 
 
-def _coordinates(points: np.ndarray, what: str, file: Path) -> np.ndarray:
+def _coordinates(points: np.ndarray, what: str, where: object) -> np.ndarray:
     """Points whose coordinates float32 kernels can hold and square (limits.coordinates)."""
-    try:
-        limits.coordinates(points, what)
-    except WarpisError as exc:
-        raise fail(file, str(exc)) from None
+    _within(where, limits.coordinates, points, what)
     return points
 
 
-def _unit(v: np.ndarray, what: str, file: Path) -> np.ndarray:
+def _unit(v: np.ndarray, what: str, where: object) -> np.ndarray:
     norms = np.linalg.norm(v, axis=-1, keepdims=True)
     if not np.all(norms > 0):
-        raise fail(file, f"{what} has zero length")
+        raise fail(where, f"{what} has zero length")
     return v / norms
 
 
@@ -335,7 +459,6 @@ def _triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     v = vertices[triangles]
     return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
 
-
 # --------------------------------------------------------------------------- receivers & materials
 
 
@@ -406,14 +529,11 @@ def _grid_points(spec: Any, where: str, file: Path) -> tuple[np.ndarray, tuple[i
 RECEIVER_BYTES = 256
 
 
-def _receiver_count(count: int, what: str, file: Path) -> None:
+def _receiver_count(count: int, what: str, where: object) -> None:
     """Refuse up front a receiver count the kernels cannot index or memory cannot hold."""
     if count > limits.MAX_COUNT:
-        raise fail(file, f"{what}: {count:,} receivers, more than the {limits.MAX_COUNT:,} the kernels can index")
-    try:
-        limits.memory(count * RECEIVER_BYTES, f"{what} ({count:,} receivers)")
-    except WarpisError as exc:
-        raise fail(file, str(exc)) from None
+        raise fail(where, f"{what}: {count:,} receivers, more than the {limits.MAX_COUNT:,} the kernels can index")
+    _within(where, limits.memory, count * RECEIVER_BYTES, f"{what} ({count:,} receivers)")
 
 
 def _receiver_group(spec: Any, where: str, file: Path, default_material: dict | None) -> dict[str, Any]:
@@ -479,7 +599,7 @@ def _receivers(doc: dict, file: Path) -> Receivers:
     )
 
 
-# --------------------------------------------------------------------------- loading
+# --------------------------------------------------------------------------- reading files
 
 
 def read_toml(file: Path) -> dict:
@@ -534,6 +654,176 @@ def _meshes(doc: dict, file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     return np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission), np.concatenate(owner), paths
 
 
+# --------------------------------------------------------------------------- arrays
+
+
+def _within(where: object, check: Callable[..., Any], *args: Any) -> None:
+    """Run a :mod:`warpis.limits` check; its one-line error is prefixed with ``where``."""
+    try:
+        check(*args)
+    except WarpisError as exc:
+        raise fail(where, str(exc)) from None
+
+
+def _numbers(value: Any, what: str, where: object, integer: bool = False) -> np.ndarray:
+    """``value`` as a new float64 (or int64) array, never the caller's memory; non-numbers,
+    and non-integers where integers are due, are refused (nothing is truncated)."""
+    try:
+        a = np.asarray(value)  # astype below copies
+    except (TypeError, ValueError):  # ragged rows, or objects numpy cannot hold
+        raise fail(where, f"{what}: not a rectangular array of numbers") from None
+    if a.size and a.dtype.kind not in ("iu" if integer else "iuf"):
+        raise fail(where, f"{what}: expected {'integers' if integer else 'real numbers'}, got dtype {a.dtype}")
+    return a.astype(np.int64 if integer else np.float64)
+
+
+def _array(value: Any, what: str, where: object, shape: tuple[int | None, ...], spelled: str,
+           integer: bool = False) -> np.ndarray:
+    """An array of exactly ``shape`` (None: any length >= 1), written ``spelled`` in errors."""
+    a = _numbers(value, what, where, integer)
+    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)) or a.size == 0:
+        raise fail(where, f"{what}: expected shape {spelled}, got {a.shape}")
+    return a
+
+
+def _per_receiver(value: Any, what: str, where: object, count: int, width: int | None = None,
+                  integer: bool = False) -> np.ndarray:
+    """One value (or one (width,) vector) for every receiver, or one per receiver."""
+    one = () if width is None else (width,)
+    a = _numbers(value, what, where, integer)
+    if a.shape == one:
+        return np.tile(a, (count,) + (1,) * len(one))
+    if a.shape != (count, *one):
+        raise fail(where, f"{what}: expected shape {one} or {(count, *one)} (one per receiver), got {a.shape}")
+    return a
+
+
+def _directions(v: np.ndarray, what: str, where: object) -> np.ndarray:
+    """Refuse a NaN, infinite, zero or overflowing direction (normals, views)."""
+    finite = np.isfinite(v).all(axis=1)
+    if not finite.all():
+        raise fail(where, f"{what}: entry {int(np.argmin(finite))} is NaN or infinite")
+    with np.errstate(over="ignore"):
+        norms = np.linalg.norm(v, axis=1)
+    if not (norms > 0).all():
+        raise fail(where, f"{what}: entry {int(np.argmin(norms > 0))} has zero length")
+    if not np.isfinite(norms).all():
+        raise fail(where, f"{what}: entry {int(np.argmin(np.isfinite(norms)))} is too long to normalise")
+    return v
+
+
+def _material_codes(material: Any, count: int, where: object) -> np.ndarray:
+    """A material name for every receiver, or codes (one or one per receiver) → (R,) int32."""
+    if isinstance(material, str):
+        if material not in MATERIALS:
+            raise fail(where, f"material: {MATERIALS.unknown(material)}")
+        material = MATERIALS[material].code
+    codes = _per_receiver(material, "material", where, count, integer=True)
+    _check_codes(codes, where)
+    return codes.astype(np.int32)
+
+
+def _check_codes(codes: np.ndarray, where: object) -> None:
+    valid = [m.code for m in MATERIALS.values()]
+    bad = ~np.isin(codes, valid)
+    if bad.any():
+        i = int(np.argmax(bad))
+        names = ", ".join(f"{m.code} {m.name}" for m in MATERIALS.values())
+        raise fail(where, f"material: code {codes[i]} of receiver {i} is not a material (valid: {names})")
+
+
+def _grid_shape(value: Any, count: int, where: object) -> tuple[int, int] | None:
+    """None, or (rows, cols) of positive integers with rows × cols = the receiver count."""
+    if value is None:
+        return None
+    shape = tuple(value) if isinstance(value, (tuple, list, np.ndarray)) else ()
+    integers = all(isinstance(s, (int, np.integer)) and not isinstance(s, bool) and s >= 1 for s in shape)
+    if len(shape) != 2 or not integers or shape[0] * shape[1] != count:
+        raise fail(where, f"grid_shape: expected (rows, cols) with rows × cols = {count} receivers, got {value!r}")
+    return int(shape[0]), int(shape[1])
+
+
+def _check_groups(group: np.ndarray, names: Any, where: object) -> None:
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise fail(where, f"group_names: expected a non-empty list of strings, got {names!r}")
+    bad = (group < 0) | (group >= len(names))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise fail(where, f"group: receiver {i} is in group {group[i]}, but there are {len(names)} group name(s)")
+
+
+def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: Any, albedo: Any, exponent: Any,
+                           view: Any, group: Any, group_names: Sequence[str] | None,
+                           grid_shape: Any) -> Receivers:
+    """Receivers from arrays, broadcast to one row per receiver, directions normalised."""
+    p = _array(positions, "positions", where, (None, 3), "(R, 3)")
+    count = len(p)
+    _receiver_count(count, "positions", where)  # before anything is broadcast to R rows
+    n = _directions(_per_receiver(normals, "normals", where, count, 3), "normals", where)
+    v = _directions(_per_receiver(view, "view", where, count, 3), "view", where)
+    g = np.zeros(count, np.int64) if group is None else _per_receiver(group, "group", where, count, integer=True)
+    names = ["receivers"] if group_names is None else list(group_names) if isinstance(group_names, (list, tuple)) \
+        else group_names
+    _check_groups(g, names, where)
+    return Receivers(
+        positions=p, normals=_unit(n, "normals", where), material=_material_codes(material, count, where),
+        albedo=_per_receiver(albedo, "albedo", where, count),
+        exponent=_per_receiver(exponent, "exponent", where, count),
+        view=_unit(v, "view", where), group=g.astype(np.int32), group_names=names,
+        grid_shape=_grid_shape(grid_shape, count, where),
+    )
+
+
+def _check_receivers(rx: Receivers, where: object) -> None:
+    """Every receiver array: shapes, the kernels' limits, directions, material codes, groups."""
+    count = len(rx.positions)
+    if rx.positions.ndim != 2 or rx.positions.shape[1] != 3 or count == 0:
+        raise fail(where, f"receivers: positions must have shape (R, 3) with R >= 1, got {rx.positions.shape}")
+    _receiver_count(count, "receivers", where)
+    for name in _RECEIVER_ARRAYS:
+        expected = (count, 3) if name in ("positions", "normals", "view") else (count,)
+        if getattr(rx, name).shape != expected:
+            raise fail(where, f"receivers: {name} has shape {getattr(rx, name).shape}, expected {expected}")
+    _coordinates(rx.positions, "positions", where)
+    _directions(rx.normals, "receiver normals", where)
+    _directions(rx.view, "receiver view", where)
+    _check_codes(rx.material, where)
+    _within(where, limits.float32_values, rx.albedo, "albedo")
+    _within(where, limits.float32_values, rx.exponent, "exponent")
+    _check_groups(rx.group, rx.group_names, where)
+    _grid_shape(rx.grid_shape, count, where)
+
+
+def _geometry(vertices: Any, triangles: Any, where: object) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3) float64 vertices the kernels can hold and (T, 3) int32 indices into them."""
+    v = _array(vertices, "vertices", where, (None, 3), "(V, 3)")
+    _coordinates(v, "vertices", where)
+    t = _array(triangles, "triangles", where, (None, 3), "(T, 3)", integer=True)
+    if t.size > limits.MAX_COUNT:
+        raise fail(where, f"triangles: {len(t):,} triangles, more than the kernels can index")
+    bad = (t < 0) | (t >= len(v))
+    if bad.any():
+        i = int(np.argmax(bad.any(axis=1)))
+        raise fail(where, f"triangles: triangle {i} refers to vertex {t[i][bad[i]][0]}, which does not exist "
+                          f"(there are {len(v)})")
+    return v, t.astype(np.int32)
+
+
+def _owners(triangle_mesh: Any, mesh_names: Any, count: int, where: object) -> tuple[np.ndarray, list[str]]:
+    """The mesh index of each triangle (default 0) and the mesh names it indexes."""
+    names = list(mesh_names) if isinstance(mesh_names, (list, tuple)) else mesh_names
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise fail(where, f"mesh_names: expected a non-empty list of strings, got {mesh_names!r}")
+    if triangle_mesh is None:
+        return np.zeros(count, np.int32), names
+    owner = _array(triangle_mesh, "triangle_mesh", where, (count,), f"(T,) = ({count},)", integer=True)
+    bad = (owner < 0) | (owner >= len(names))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise fail(where, f"triangle_mesh: triangle {i} is in mesh {owner[i]}, but there are {len(names)} mesh name(s)")
+    return owner.astype(np.int32), names
+
+
 def _degenerate(vertices: np.ndarray, triangles: np.ndarray, areas: np.ndarray) -> np.ndarray:
     """Needle or point triangles: area at most DEGENERATE_AREA × longest edge², or an
     area float32 cannot hold (below its smallest normal number)."""
@@ -543,9 +833,10 @@ def _degenerate(vertices: np.ndarray, triangles: np.ndarray, areas: np.ndarray) 
     return (areas <= DEGENERATE_AREA * longest) | (areas < limits.FLOAT32_TINY)
 
 
-def _emitters(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray, owner: np.ndarray,
-              paths: list[str], file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Emitter triangle indices and areas; degenerate emitter triangles are dropped."""
+def _drop_needles(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray, owner: np.ndarray,
+                  mesh_where: Callable[[int], object]) -> np.ndarray:
+    """``emission`` with degenerate emitter triangles set to 0 (a warning per mesh); a mesh
+    whose every emitter triangle is degenerate is an error naming it."""
     areas = _triangle_areas(vertices, triangles)
     needles = _degenerate(vertices, triangles, areas)
     emission = emission.copy()
@@ -554,51 +845,53 @@ def _emitters(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
         degenerate = mine & needles
         if degenerate[mine].all():
             tiny = 0 < areas[mine].max() < limits.FLOAT32_TINY
-            raise fail(file.parent / paths[m], "every emitter triangle has zero area" if not tiny else
+            raise fail(mesh_where(m), "every emitter triangle has zero area" if not tiny else
                        f"every emitter triangle's area is below float32's smallest normal number "
                        f"({limits.FLOAT32_TINY:.3g}): rescale the scene")
         if degenerate.any():
-            warnings.warn(f"{file.parent / paths[m]}: dropped {int(degenerate.sum())} zero-area emitter triangle(s)",
-                          stacklevel=3)
+            warnings.warn(f"{mesh_where(m)}: dropped {int(degenerate.sum())} zero-area emitter triangle(s)",
+                          stacklevel=4)  # the caller of load_scene or Scene.from_arrays
             emission[degenerate] = 0.0
-    emitters = np.flatnonzero(emission > 0).astype(np.int32)
-    if len(emitters) == 0:
-        raise fail(file, "the scene has no emitter (give some [[mesh]] an emission > 0)")
-    return emitters, areas[emitters], emission
+    return emission
 
 
-def check_device(device: str, what: str = "device") -> str:
-    """``device`` if it names a Warp device of this machine (cpu, cuda, cuda:N), else a
-    one-line error saying which devices exist."""
-    name = str(device)
-    if name == "cpu":
-        return name
-    match = re.fullmatch(r"cuda(?::(\d+))?", name)
-    if match is None:
-        raise WarpisError(f"{what} {name!r}: unknown device (valid: cpu, cuda, cuda:N)")
-    count = wp.get_cuda_device_count()
-    if count == 0:
-        raise WarpisError(f"{what} {name!r}: this machine has no CUDA device (use cpu)")
-    ordinal = int(match.group(1) or 0)
-    if ordinal >= count:
-        raise WarpisError(f"{what} {name!r}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
-    return name
+def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, name: str, vertices: Any,
+              triangles: Any, emission: Any, receivers: Receivers, triangle_mesh: Any, mesh_names: Any,
+              description: str, device: str, path: Path | None = None) -> Scene:
+    """The one gate of every source (a scene file, arrays): each array against the kernels'
+    limits, degenerate emitters dropped, at least one emitter → a Scene.
+
+    ``where`` prefixes errors; ``mesh_where(m)`` names mesh m; ``hint`` says how to add an emitter.
+    """
+    v, t = _geometry(vertices, triangles, where)
+    e = _array(emission, "emission", where, (len(t),), f"(T,) = ({len(t)},)")
+    _within(where, limits.float32_values, e, "emission")
+    owner, names = _owners(triangle_mesh, mesh_names, len(t), where)
+    _check_receivers(receivers, where)
+    e = _drop_needles(v, t, e, owner, mesh_where)
+    if not (e > 0).any():
+        raise fail(where, f"the scene has no emitter ({hint})")
+    return Scene(name=name, vertices=v, triangles=t, emission=e, receivers=receivers, triangle_mesh=owner,
+                 mesh_names=names, description=description, path=path, device=device)
+
+
+# --------------------------------------------------------------------------- scene files
 
 
 def load_scene(scene: str | Path, device: str = "cpu") -> Scene:
-    """Load and validate a scene file (or a bundled scene by name) onto a Warp device.
+    """Load and validate a scene file (or a bundled scene by name).
 
     Parameters
     ----------
     scene
         A bundled scene's name (see :func:`bundled_scenes`) or the path of a scene TOML.
     device
-        Warp device for the scene's arrays: ``"cpu"`` or ``"cuda"``/``"cuda:N"``.
+        Warp device the scene's kernels run on: ``"cpu"`` or ``"cuda"``/``"cuda:N"``.
 
     Returns
     -------
     Scene
-        Geometry in numpy and as Warp structs (``scene.data``, ``scene.receiver_data``).
+        Plain numpy data; ``scene.data`` and ``scene.receiver_data`` upload it on first use.
 
     Raises
     ------
@@ -616,88 +909,7 @@ def load_scene(scene: str | Path, device: str = "cpu") -> Scene:
         raise fail(file, "description must be a string")
     vertices, triangles, emission, owner, paths = _meshes(doc, file)
     receivers = _receivers(doc, file)
-    emitters, areas, emission = _emitters(vertices, triangles, emission, owner, paths, file)
-    result = Scene(
-        name=name, path=file, device=str(device), vertices=vertices, triangles=triangles,
-        triangle_mesh=owner, mesh_paths=paths, emission=emission, emitters=emitters,
-        emitter_areas=areas, receivers=receivers, description=str(doc.get("description", "")),
-    )
-    upload(result, device)
-    return result
-
-
-def _cdf(weights: np.ndarray) -> np.ndarray:
-    c = np.concatenate([[0.0], np.cumsum(weights, dtype=np.float64)])
-    c /= c[-1]
-    c[-1] = 1.0
-    return c.astype(np.float32)
-
-
-@wp.kernel
-def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-                 position: wp.array(dtype=wp.vec3), slab: wp.array(dtype=wp.float32)):
-    """Slab height of each receiver: SELF_HIT_SLAB × the largest coordinate magnitude of
-    the receiver and of every triangle whose bounds hold it (its own surface among them).
-
-    Warp's watertight ray test works on vertex − origin differences, so its rounding
-    scales with those magnitudes; the slab follows them and nothing else (no scene size).
-    """
-    r = wp.tid()
-    x = position[r]
-    scale = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
-    reach = scale * 1.0e-6 + 1.0e-30
-    query = wp.mesh_query_aabb(mesh, x - wp.vec3(reach), x + wp.vec3(reach))
-    face = wp.int32(0)
-    while wp.mesh_query_aabb_next(query, face):
-        for j in range(3):
-            v = points[indices[face * 3 + j]]
-            scale = wp.max(scale, wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2])))
-    slab[r] = scale * SELF_HIT_SLAB
-
-
-def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """float32 bounds of emitter triangles, widened by a little of each triangle's own
-    size and magnitude: flat (axis-aligned) triangles get boxes of non-zero width, and a
-    ray the widened triangle test (EDGE_SLACK) accepts is never culled by float32 box
-    rounding.  A wider box costs a few more triangle tests, never a wrong pdf."""
-    lo, hi = corners.min(axis=1), corners.max(axis=1)
-    pad = 1e-4 * (hi - lo).max(axis=1) + 2.0**-14 * np.abs(corners).max(axis=(1, 2))
-    return (lo - pad[:, None]).astype(np.float32), (hi + pad[:, None]).astype(np.float32)
-
-
-def upload(scene: Scene, device: str) -> None:
-    """Build the Warp meshes and structs of ``scene`` on ``device`` (in place)."""
-    with wp.ScopedDevice(device):
-        points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3)
-        indices = wp.array(scene.triangles.reshape(-1).astype(np.int32), dtype=wp.int32)
-        mesh = wp.Mesh(points=points, indices=indices)
-        lower, upper = _emitter_boxes(scene.triangle_vertices(scene.emitters))
-        emitter_bvh = wp.Bvh(wp.array(lower, dtype=wp.vec3), wp.array(upper, dtype=wp.vec3))
-        d = SceneData()
-        d.mesh = mesh.id
-        d.emitter_bvh = emitter_bvh.id
-        d.points = points
-        d.indices = indices
-        d.tri_emission = wp.array(scene.emission.astype(np.float32), dtype=wp.float32)
-        d.emitter_tri = wp.array(scene.emitters, dtype=wp.int32)
-        d.emitter_area = wp.array(scene.emitter_areas.astype(np.float32), dtype=wp.float32)
-        d.area_cdf = wp.array(_cdf(scene.emitter_areas), dtype=wp.float32)
-        d.power_cdf = wp.array(_cdf(scene.emitter_areas * scene.emitter_radiance), dtype=wp.float32)
-        d.total_area = float(scene.total_emitter_area)
-        d.total_power = float(scene.total_power)
-        d.emitter_count = int(scene.emitter_count)
-        r = scene.receivers
-        rd = ReceiverData()
-        rd.position = wp.array(r.positions.astype(np.float32), dtype=wp.vec3)
-        rd.normal = wp.array(r.normals.astype(np.float32), dtype=wp.vec3)
-        rd.material = wp.array(r.material.astype(np.int32), dtype=wp.int32)
-        rd.albedo = wp.array(r.albedo.astype(np.float32), dtype=wp.float32)
-        rd.exponent = wp.array(r.exponent.astype(np.float32), dtype=wp.float32)
-        rd.view = wp.array(r.view.astype(np.float32), dtype=wp.vec3)
-        rd.slab = wp.zeros(len(r), dtype=wp.float32)
-        wp.launch(_slab_kernel, dim=len(r), inputs=[mesh.id, points, indices, rd.position, rd.slab])
-    scene.device = str(device)
-    scene.slab = rd.slab.numpy().astype(np.float64)
-    scene.data = d
-    scene.receiver_data = rd
-    scene._keep = [points, indices, mesh, emitter_bvh]
+    return _assemble(file, lambda m: file.parent / paths[m], "give some [[mesh]] an emission > 0", name=name,
+                     vertices=vertices, triangles=triangles, emission=emission, receivers=receivers,
+                     triangle_mesh=owner, mesh_names=paths, description=str(doc.get("description", "")),
+                     device=str(device), path=file)

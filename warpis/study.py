@@ -8,13 +8,14 @@ so a run killed at any moment leaves valid files holding every finished cell.  A
 an exclusive lock on ``OUT`` (``OUT/.lock``, :mod:`warpis.outdir`) from start to end, so a
 second run on the same folder stops at once instead of racing the first.
 
-Each cell has a *key*: a hash of the scene file's and its mesh files' content, the
-estimator, N, the trials, the seed, the receivers, whether predictions are attached and
-the warpis version.  Rows carry their key (column ``cell``).  A rerun reads the rows back,
-keeps every row whose key is still in the study *verbatim* (its ``seconds`` included),
-drops the rows of cells no longer in the study, computes only the missing cells and
-writes the files in the canonical cell order (scenes, then estimators, then N, as listed;
-receivers in order within a cell).  Every number is deterministic, so a resumed run ends
+Each cell has a *key*: a hash of the scene's content digest (``Scene.digest``: its
+arrays, not its files or their paths) and name, the estimator, N, the trials, the seed,
+the receivers, whether predictions are attached and the warpis version.  Rows carry
+their key (column ``cell``).  A rerun reads the rows back, keeps every row whose key is
+still in the study *verbatim* (its ``seconds`` included), drops the rows of cells no
+longer in the study, computes only the missing cells and writes the files in the
+canonical cell order (scenes, then estimators, then N, as listed; receivers in order
+within a cell).  Every number is deterministic, so a resumed run ends
 with the same files as an uninterrupted one, except the ``seconds`` of the cells the
 second run computed.  ``summary.json`` holds no timings and is byte-identical.
 
@@ -32,7 +33,6 @@ import io
 import json
 import math
 import re
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,11 +41,11 @@ from typing import Any
 import numpy as np
 
 from . import limits, outdir
-from .engine import run_trials
+from .cell import MIN_TRIALS, Row, RunCache, inside, measure_cell, summarize
 from .errors import WarpisError
 from .estimators import Estimator, parse_estimator
-from .scene import Scene, bundled_scenes, load_scene, read_toml, resolve_scene_path
-from .stats import fit_slope, variance_interval
+from .scene import Scene, load_scene, read_toml, resolve_scene_path
+from .stats import fit_slope
 from .theory import BOUNDS
 from .vocabulary import expected_slope as registry_slope
 
@@ -62,13 +62,11 @@ Z_FORMS = tuple(f for f in FORMS if f not in BOUND_FORMS)
 HEADER = (["scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mean_stderr", "reference",
            "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi"]
           + [f"pred_{f}" for f in FORMS] + [f"z_{f}" for f in Z_FORMS] + ["seconds", "warpis_version", "cell"])
-MIN_TRIALS = 4
 # Bytes per trial estimate while a cell runs: the float64 result and about three
 # float64 temporaries of the same size in stats.variance_interval.
 TRIAL_BYTES = 32
 # Convergence figures per scene: the first receivers of the study's list for that scene.
 MAX_CONVERGENCE_RECEIVERS = 8
-Z95 = 1.959963984540054
 
 # The built-in study of ``warpis demo`` (scripts/studies/demo.toml is the same study as a file).
 DEMO_ESTIMATORS = {
@@ -105,7 +103,7 @@ def _version() -> str:
 
 @dataclass
 class StudyScene:
-    """One scene of a study: as written, loaded, its receivers and a digest of its files."""
+    """One scene of a study: as written, loaded, its receivers and its content digest."""
 
     source: str
     scene: Scene
@@ -163,12 +161,9 @@ def cell_key(study: Study, scene: StudyScene, est: Estimator, n: int) -> str:
 
 
 def scene_digest(scene: Scene) -> str:
-    """sha256 of the scene file and of every mesh file it names (in order)."""
-    h = hashlib.sha256(scene.path.read_bytes())
-    for rel in dict.fromkeys(scene.mesh_paths):
-        h.update(b"\0" + rel.encode() + b"\0")
-        h.update((scene.path.parent / rel).read_bytes())
-    return h.hexdigest()
+    """The scene's content digest (:attr:`Scene.digest`: its arrays, not its files), so
+    two files with the same content share cells and a moved file keeps its results."""
+    return scene.digest
 
 
 def load_study(path: str | Path, threads: int | None = None) -> Study:
@@ -287,21 +282,10 @@ def demo_study(threads: int | None = None) -> Study:
 
 
 def _load_scene(source: str, base: Path | None, bad) -> Scene:
-    """A bundled name or a path relative to the study file → the loaded scene."""
-    path = None
-    if base is not None:
-        candidate = base / source
-        if candidate.is_file() or (candidate.is_dir() and (candidate / "scene.toml").is_file()):
-            path = resolve_scene_path(candidate)
-    if path is None:
-        if "/" not in source and "\\" not in source and source in bundled_scenes():
-            path = resolve_scene_path(source)
-        else:
-            where = base / source if base is not None else Path(source)
-            raise bad(f"scenes: {source!r}: no such scene file ({where}) and no bundled scene of that name "
-                      f"(bundled: {', '.join(bundled_scenes())})")
+    """A path relative to the study file (``base``), else a bundled name (only that for a
+    built-in study, ``base`` None) → the loaded scene."""
     try:
-        return load_scene(path)
+        return load_scene(resolve_scene_path(source, base))
     except WarpisError as exc:
         raise bad(f"scene {source!r}: {exc}") from None
 
@@ -384,70 +368,29 @@ def typed_row(raw: list[str]) -> dict[str, Any]:
     preds = {f: _parse(d[f"pred_{f}"]) for f in FORMS if d[f"pred_{f}"] != ""}
     row["predictions"] = {f: (v if v is not None and math.isfinite(v) else None) for f, v in preds.items()}
     row["z"] = {f: _parse(d[f"z_{f}"]) for f in Z_FORMS if f in preds}
-    inside = {}
-    for f, v in preds.items():
-        if f in BOUND_FORMS:
-            inside[f] = bool(row["variance_lo"] <= v)
-        else:
-            z = row["z"].get(f)
-            inside[f] = bool(z is not None and abs(z) <= Z95) or (z is None and v == row["variance"])
-    row["inside"] = inside
+    # Judged by the pipeline's one rule, from z (results.csv keeps z, not se(V)).
+    row["inside"] = {f: inside(f, row["variance"], row["variance_lo"], v, row["z"].get(f))
+                     for f, v in preds.items()}
     return row
 
 
-class _Caches:
-    """Per run: references per scene, moments per (scene, receiver, techniques)."""
-
-    def __init__(self) -> None:
-        self.references: dict[str, dict[int, Any]] = {}
-        self.moments: dict[tuple, Any] = {}
-
-    def reference(self, s: StudyScene) -> dict[int, Any]:
-        from .reference import reference
-
-        if s.name not in self.references:
-            self.references[s.name] = {r.index: r for r in reference(s.scene, s.receivers)}
-        return self.references[s.name]
-
-    def moments_of(self, s: StudyScene, r: int, techniques: tuple[str, ...]):
-        from .theory import moments
-
-        key = (s.name, r, techniques)
-        if key not in self.moments:
-            self.moments[key] = moments(s.scene, r, techniques)
-        return self.moments[key]
+def compute_cell(study: Study, cell: Cell, cache: RunCache) -> list[list[str]]:
+    """Run one cell through the shared pipeline (:func:`warpis.cell.measure_cell`) → CSV rows (strings)."""
+    s = cell.scene
+    measured = measure_cell(s.scene, s.receivers, cell.estimator, cell.n, study.trials, study.seed, cache,
+                            predict=study.predictions, threads=study.threads)
+    seconds = f"{measured.seconds:.3f}"
+    return [csv_row(row) + [seconds, _version(), cell.key] for row in measured.rows]
 
 
-def compute_cell(study: Study, cell: Cell, caches: _Caches) -> list[list[str]]:
-    """Run one cell: M trials at every receiver, predictions if asked → CSV rows (strings)."""
-    from .theory import predictions
-
-    start = time.perf_counter()
-    s, est, n = cell.scene, cell.estimator, cell.n
-    values = run_trials(s.scene, est, n, study.trials, seed=study.seed, receivers=s.receivers, threads=study.threads)
-    stats = variance_interval(values)
-    refs = caches.reference(s)
-    body = []
-    for i, r in enumerate(s.receivers):
-        var, se = float(stats.variance[i]), float(stats.variance_stderr[i])
-        pred: dict[str, Any] = {}
-        if study.predictions:
-            with np.errstate(all="ignore"):
-                pred = predictions(s.scene, r, est, n, mom=caches.moments_of(s, r, est.techniques))
-        z = {}
-        for form, e in pred.items():
-            if form in Z_FORMS:
-                scale = math.hypot(se, e.stderr)
-                value = (var - e.value) / scale if scale > 0 else None
-                z[form] = value if value is not None and math.isfinite(value) else None
-        ref = refs[r]
-        body.append([s.name, str(r), est.spec, str(n), str(study.trials), str(study.seed),
-                     _num(stats.mean[i]), _num(stats.mean_stderr[i]), _num(ref.value), _num(ref.stderr),
-                     _num(var), _num(se), _num(stats.lo[i]), _num(stats.hi[i])]
-                    + [_num(pred[f].value) if f in pred else "" for f in FORMS]
-                    + [_num(z.get(f)) for f in Z_FORMS])
-    seconds = f"{time.perf_counter() - start:.3f}"
-    return [row + [seconds, _version(), cell.key] for row in body]
+def csv_row(row: Row) -> list[str]:
+    """A measured row as the columns of results.csv before ``seconds``: numbers as the
+    shortest text that reads back to the same float, '' for a form that is absent."""
+    return ([row.scene, str(row.receiver), row.estimator, str(row.n), str(row.trials), str(row.seed)]
+            + [_num(x) for x in (row.mean, row.mean_stderr, row.reference, row.reference_stderr, row.variance,
+                                 row.variance_stderr, row.variance_lo, row.variance_hi)]
+            + [_num(row.predictions[f].value) if f in row.predictions else "" for f in FORMS]
+            + [_num(row.z.get(f)) for f in Z_FORMS])
 
 
 # --------------------------------------------------------------------------- files
@@ -591,8 +534,6 @@ def slopes(rows: list[dict], study: Study) -> list[dict]:
 
 
 def form_summaries(rows: list[dict]) -> list[dict]:
-    from .verify import summarize
-
     return [{"form": s.form, "kind": "bound" if s.bound else "equation", "cells": s.cells, "inside": s.inside,
              "median_ratio": s.median_ratio if math.isfinite(s.median_ratio) else None, "holds": s.holds}
             for s in summarize(rows)]
@@ -658,9 +599,9 @@ def _run_locked(study: Study, out: Path, progress: Callable[[int, int], None] | 
     write_results(out, study, cells, done, typed)
     if progress is not None:
         progress(0, len(todo))
-    caches = _Caches()
+    cache = RunCache()  # references and moments, shared by this run's cells
     for i, cell in enumerate(todo):
-        done[cell.key] = compute_cell(study, cell, caches)
+        done[cell.key] = compute_cell(study, cell, cache)
         write_results(out, study, cells, done, typed)
         if progress is not None:
             progress(i + 1, len(todo))

@@ -30,8 +30,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from .device import DeviceScene, ReceiverData, SceneData, upload
 from .integrand import ShadingPoint, shading_point
-from .scene import ReceiverData, Scene, SceneData
+from .scene import Scene
 from .vocabulary import TECHNIQUES
 from .warps import (
     cosine_hemisphere_pdf,
@@ -308,17 +309,18 @@ def _light_table_kernel(scene: SceneData, recv: ReceiverData, cdf: wp.array2d(dt
 
 
 def light_table(scene: Scene) -> LightTable:
-    """The solid-angle selection table of every receiver of ``scene`` (cached on it)."""
-    cached = getattr(scene, "_light_table", None)
-    if cached is not None:
-        return cached
-    r, e = len(scene.receivers), scene.emitter_count
+    """The solid-angle selection table of every receiver of ``scene``, built once per
+    content and device (kept with its upload, :meth:`warpis.device.DeviceScene.cached`)."""
+    dev = upload(scene)
+    return dev.cached("light_table", lambda: _build_light_table(dev, len(scene.receivers), scene.emitter_count))
+
+
+def _build_light_table(dev: DeviceScene, receivers: int, emitters: int) -> LightTable:
     table = LightTable()
-    table.cdf = wp.zeros((r, e + 1), dtype=wp.float64, device=scene.device)
-    table.total = wp.zeros(r, dtype=wp.float64, device=scene.device)
-    wp.launch(_light_table_kernel, dim=r, inputs=[scene.data, scene.receiver_data, table.cdf, table.total],
-              device=scene.device)
-    scene._light_table = table
+    table.cdf = wp.zeros((receivers, emitters + 1), dtype=wp.float64, device=dev.device)
+    table.total = wp.zeros(receivers, dtype=wp.float64, device=dev.device)
+    wp.launch(_light_table_kernel, dim=receivers, inputs=[dev.data, dev.receiver_data, table.cdf, table.total],
+              device=dev.device)
     return table
 
 
@@ -356,22 +358,24 @@ def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray
     directions : (K, 3) float32 unit vectors (zero rows where the technique had nothing to sample)
     pdf : (K,) float64 solid-angle densities (0 for failed samples)
     """
-    dev = scene.device
+    up = upload(scene)  # held until the launch is done: the struct knows its mesh by id only
+    dev = up.device
     uu = wp.array(np.ascontiguousarray(u, dtype=np.float32), dtype=wp.vec2, device=dev)
     dirs = wp.zeros(len(u), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(u), dtype=wp.float64, device=dev)
     wp.launch(_sample_kernel, dim=len(u), device=dev,
-              inputs=[scene.data, scene.receiver_data, light_table(scene), technique_code(technique), receiver,
+              inputs=[up.data, up.receiver_data, light_table(scene), technique_code(technique), receiver,
                       uu, dirs, pdf])
     return dirs.numpy(), pdf.numpy()
 
 
 def direction_pdf(scene: Scene, receiver: int, technique: str, directions: np.ndarray) -> np.ndarray:
     """Solid-angle density of ``technique`` at each of ``directions`` (K, 3) → (K,)."""
-    dev = scene.device
+    up = upload(scene)
+    dev = up.device
     dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(directions), dtype=wp.float64, device=dev)
     wp.launch(_pdf_kernel, dim=len(directions), device=dev,
-              inputs=[scene.data, scene.receiver_data, light_table(scene), technique_code(technique), receiver,
+              inputs=[up.data, up.receiver_data, light_table(scene), technique_code(technique), receiver,
                       dirs, pdf])
     return pdf.numpy()

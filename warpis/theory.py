@@ -38,11 +38,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .device import ReceiverData, SceneData, upload
 from .engine import default_threads
 from .errors import WarpisError
 from .estimators import Estimator, parse_estimator
 from .integrand import integrand, shading_point
-from .scene import ReceiverData, Scene, SceneData
+from .scene import Scene
 from .techniques import LightTable, light_table, sample_technique, technique_pdf
 from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Blocks
 
@@ -83,7 +84,8 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
 
     On the CPU the points are split over the engine's worker threads (one launch each).
     """
-    dev = scene.device
+    up = upload(scene)  # held until the launches are done: the struct knows its mesh by id only
+    dev = up.device
     codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32, device=dev)
     table = light_table(scene)
     f_all = np.empty(len(u))
@@ -94,7 +96,7 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
         f = wp.zeros(hi - lo, dtype=wp.float64, device=dev)
         pdf = wp.zeros((hi - lo, len(techniques)), dtype=wp.float64, device=dev)
         wp.launch(_evaluate_kernel, dim=hi - lo, device=dev,
-                  inputs=[scene.data, scene.receiver_data, table, receiver, codes, k, uu, f, pdf])
+                  inputs=[up.data, up.receiver_data, table, receiver, codes, k, uu, f, pdf])
         f_all[lo:hi] = f.numpy()
         pdf_all[lo:hi] = pdf.numpy()
 
@@ -199,8 +201,9 @@ def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: i
     """The exact variance of one estimate (N = ``n``) at one receiver, to ``rel_tol``.
 
     Var = c² · multiplicity · Σ_k Σ_b Var(block sum).  The block sums are computed once
-    per block layout and cached on the scene: for ``independent`` and ``antithetic`` the
-    layout (one block over the whole square) is the same for every N.  A one-line
+    per block layout and kept with the scene's upload (per content and device): for
+    ``independent`` and ``antithetic`` the layout (one block over the whole square) is the
+    same for every N.  A one-line
     WarpisError where the estimator has no exact form (``exact_form_problem``).
     """
     est = parse_estimator(estimator)
@@ -211,7 +214,7 @@ def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: i
     m = est.per_technique(n)
     blocks = est.pattern_entry.blocks(m)
     c = est.combiner_entry.scale(m, est.technique_count)
-    cache = scene.__dict__.setdefault("_block_variance_cache", {})
+    cache = upload(scene).cached("block_variance", dict)  # kept per content and device
     key = (receiver, est.pattern, est.combiner, est.techniques, blocks.count, blocks.cells, rel_tol, seed, max_points)
     if key not in cache:
         cache[key] = block_variance(scene, receiver, est, blocks, rel_tol, seed, max_points)

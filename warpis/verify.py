@@ -1,12 +1,12 @@
 """``warpis verify``: measured variance beside every applicable prediction, cell by cell.
 
-A *cell* is receiver × estimator × N.  Its measured variance (M trials, fourth-moment 95%
-interval) is held against each form of ``theory.predictions``.  A form is *inside* when
-the two agree within the 95% interval widened by the prediction's own error,
-|s² − V| ≤ 1.96·√(se(s²)² + se(V)²); a bound (eq17, eq20, veach-bound) is inside when it
-is not below the interval, lo ≤ V.  Results are written as ``verify.json`` (rewritten
-atomically after every estimator × N, so an interrupted run keeps what it finished),
-``verify.md`` and figures.
+Verify is a study of one scene with default estimators: each receiver × estimator × N
+*cell* is measured by :func:`warpis.cell.measure_cell`, the pipeline ``warpis study``
+shares, which also holds the rules (a form is *inside* when
+|s² − V| ≤ 1.96·√(se(s²)² + se(V)²), a bound (eq17, eq20, veach-bound) when it is not
+below the interval; when a form *holds*).  What is verify's own is the choice of
+estimators and the output: ``verify.json`` (rewritten atomically after every
+estimator × N, so an interrupted run keeps what it finished), ``verify.md`` and figures.
 """
 
 from __future__ import annotations
@@ -22,18 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from . import outdir
-from .engine import run_trials, select_receivers
-from .errors import WarpisError
+from .cell import Row, RunCache, check_trials, measure_cell, summarize
+from .engine import select_receivers
 from .estimators import Estimator, parse_estimator
-from .reference import reference
 from .scene import Scene
-from .stats import variance_interval
-from .theory import BOUNDS, Moments, moments, predictions
 from .vocabulary import COMBINERS, MATERIALS, PATTERNS
 
 DEFAULT_N = (4, 16, 64, 256, 1024)
 DEFAULT_TRIALS = 400
-Z95 = 1.959963984540054
 
 
 def default_techniques(scene: Scene) -> tuple[str, str]:
@@ -89,16 +85,6 @@ class VerifyResult:
                 "seconds": round(self.seconds, 2), "rows": self.rows}
 
 
-def _inside(form: str, variance: float, se: float, lo: float, value: float, value_se: float) -> bool:
-    if form in BOUNDS:
-        return bool(lo <= value)
-    return bool(abs(variance - value) <= Z95 * math.hypot(se, value_se))
-
-
-def _finite(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
 def verify(
     scene: Scene,
     techniques: Sequence[str] | None = None,
@@ -121,8 +107,7 @@ def verify(
     for est in ests:
         for n in n_values:
             est.check_n(n)
-    if trials < 4:
-        raise WarpisError(f"--trials must be at least 4 to give a variance interval (got {trials})")
+    check_trials(trials)
     rx = select_receivers(scene, receivers if receivers is not None else default_receivers(scene))
     with outdir.locked(out) if out is not None else contextlib.nullcontext():
         return _measure(scene, techs, ests, n_values, trials, seed, rx, threads, out, progress)
@@ -132,19 +117,13 @@ def _measure(scene: Scene, techs: tuple[str, ...], ests: list[Estimator], n_valu
              seed: int, rx: np.ndarray, threads: int | None, out: Path | None,
              progress: Callable[[int, int], None] | None) -> VerifyResult:
     start = time.perf_counter()
-    refs = {r.index: r for r in reference(scene, rx)}
+    cache = RunCache()  # references and moments, shared by the cells of this run
     result = VerifyResult(scene.name, trials, seed, techs)
-    moment_cache: dict[tuple[int, tuple[str, ...]], Moments] = {}
     total, done = len(ests) * len(n_values), 0
     for est in ests:
         for n in n_values:
-            values = run_trials(scene, est, n, trials, seed=seed, receivers=rx, threads=threads)
-            stats = variance_interval(values)
-            for i, r in enumerate(rx):
-                key = (int(r), est.techniques)
-                if key not in moment_cache:
-                    moment_cache[key] = moments(scene, int(r), est.techniques)
-                result.rows.append(_row(scene, int(r), est, n, stats, i, moment_cache[key], refs[int(r)]))
+            cell = measure_cell(scene, rx, est, n, trials, seed, cache, threads=threads)
+            result.rows += [json_row(row) for row in cell.rows]
             done += 1
             result.seconds = time.perf_counter() - start
             if out is not None:
@@ -154,28 +133,23 @@ def _measure(scene: Scene, techs: tuple[str, ...], ests: list[Estimator], n_valu
     return result
 
 
-def _row(scene: Scene, r: int, est: Estimator, n: int, stats, i: int, mom: Moments, ref) -> dict:
-    pred = predictions(scene, r, est, n, mom=mom)
-    var, se, lo, hi = (float(stats.variance[i]), float(stats.variance_stderr[i]), float(stats.lo[i]),
-                       float(stats.hi[i]))
-    row = {
-        "receiver": r, "estimator": est.spec, "n": n,
-        "mean": float(stats.mean[i]), "mean_stderr": float(stats.mean_stderr[i]),
-        "reference": ref.value, "reference_stderr": ref.stderr,
-        "variance": var, "variance_stderr": se, "variance_ci": [lo, hi],
-        "predictions": {k: _finite(e.value) for k, e in pred.items()},
-        "prediction_rel_error": {k: _finite(e.rel_error) for k, e in pred.items()},
-        "inside": {k: _inside(k, var, se, lo, e.value, e.stderr) for k, e in pred.items()},
-        "z": {k: _finite((var - e.value) / math.hypot(se, e.stderr)) if math.hypot(se, e.stderr) > 0 else None
-              for k, e in pred.items() if k not in BOUNDS},
-    }
-    if est.combiner == "biased":  # seed eq. 18: the mean is ∫ f g, a bias of ∫ f g − F
-        fg = mom.int_fg[0]
-        row["mean_predictions"] = {"eq18": fg.value}
-        row["mean_inside"] = {"eq18": bool(abs(row["mean"] - fg.value) <= Z95 * math.hypot(row["mean_stderr"],
-                                                                                            fg.stderr))}
-        row["bias"] = row["mean"] - ref.value
-    return row
+def json_row(row: Row) -> dict:
+    """A row of verify.json (README.md, "JSON that other tools read"): the shared row's
+    numbers, each prediction's relative error, and eq. 18 with the bias for biased IS."""
+    plain = row.as_dict()
+    out = {k: plain[k] for k in ("receiver", "estimator", "n", "mean", "mean_stderr", "reference",
+                                 "reference_stderr", "variance", "variance_stderr", "variance_ci", "predictions")}
+    out["prediction_rel_error"] = {k: _finite(e.rel_error) for k, e in row.predictions.items()}
+    out["inside"], out["z"] = plain["inside"], plain["z"]
+    if row.mean_predictions:
+        out["mean_predictions"] = {k: e.value for k, e in row.mean_predictions.items()}
+        out["mean_inside"] = dict(row.mean_inside)
+        out["bias"] = row.bias
+    return out
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
 
 
 def write_json(out: Path, result: VerifyResult) -> None:
@@ -196,50 +170,6 @@ def write_outputs(out: Path, result: VerifyResult, command: str) -> None:
 
 
 # --------------------------------------------------------------------------- summary
-
-
-@dataclass
-class FormSummary:
-    form: str
-    cells: int
-    inside: int
-    median_ratio: float  # measured / predicted
-    bound: bool
-
-    @property
-    def holds(self) -> bool:
-        """A bound holds when it is never below the interval; an equation when ≥ 80% of
-        its cells agree and the median ratio is within 10% of 1 (95% intervals of heavy-
-        tailed estimates under-cover somewhat, so 80% leaves room for that, not for a
-        wrong formula)."""
-        if self.bound:
-            return self.inside == self.cells
-        if not 0 < self.median_ratio < math.inf:
-            return False
-        return self.inside >= 0.8 * self.cells and abs(math.log(self.median_ratio)) < math.log(1.1)
-
-
-def summarize(rows: Sequence[dict]) -> list[FormSummary]:
-    """Per form: cells, cells inside, median measured/predicted ratio."""
-    forms: dict[str, list[tuple[bool, float]]] = {}
-    for row in rows:
-        for form, value in row["predictions"].items():
-            if form == "exact" or row["variance"] <= 0:
-                continue
-            ratio = 0.0 if value is None else row["variance"] / value if value > 0 else math.inf
-            forms.setdefault(form, []).append((row["inside"][form], ratio))
-    out = []
-    for form in sorted(forms, key=_form_order):
-        cells = forms[form]
-        ratios = np.array([r for _, r in cells])
-        out.append(FormSummary(form, len(cells), sum(i for i, _ in cells), float(np.median(ratios)), form in BOUNDS))
-    return out
-
-
-def _form_order(form: str) -> tuple:
-    head = form.split("-")[0]
-    digits = "".join(ch for ch in head if ch.isdigit())
-    return (0 if digits else 1, int(digits) if digits else 0, form)
 
 
 def summary_lines(result_or_rows) -> list[str]:

@@ -1,0 +1,234 @@
+"""A scene's Warp side: the mesh, BVH, structs, self-hit slabs and everything derived on a device.
+
+A :class:`~warpis.scene.Scene` is plain numpy data named by its content digest; the
+kernels need Warp objects built from it on one device.  :func:`upload` builds them once
+per (digest, device) into a :class:`DeviceScene` and keeps it in one process-wide cache,
+so two Scene objects with the same content (a scene loaded twice, one unpickled in
+another process, the same file under another path) share one upload, and nothing is ever
+attached to a Scene.  What is derived from the Warp side (the light table of
+:mod:`warpis.techniques`, theory's block variances) lives in the same entry
+(:meth:`DeviceScene.cached`).
+
+The cache keeps the :data:`DEVICE_CACHE_SIZE` most recently used entries.  A Warp struct
+refers to its mesh and BVH by id only, so code that launches kernels holds the
+DeviceScene (not just ``.data``) until its launches are done.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
+import warp as wp
+
+from .errors import WarpisError
+
+if TYPE_CHECKING:
+    from .scene import Scene
+
+T = TypeVar("T")
+
+# Self-hit slab, relative to the float32 magnitude of the coordinates around a receiver:
+# rays ignore surfaces within this height above the receiver's tangent plane (see
+# integrand.py).  2^-16 is 128 float32 ulps: far above the rounding of Warp's watertight
+# ray-triangle test, and second order in F (docs/theory.md, "The integrand at a receiver").
+SELF_HIT_SLAB = 2.0**-16
+# Uploads kept: more than the scenes of any study (a study's cells run scene by scene, so
+# a larger study only rebuilds on revisits), few enough that a process looping over many
+# generated scenes does not keep every mesh alive.
+DEVICE_CACHE_SIZE = 16
+
+
+@wp.struct
+class SceneData:
+    """Everything a kernel needs to cast rays and sample the emitters of a scene."""
+
+    mesh: wp.uint64  # every triangle: emitters occlude too
+    emitter_bvh: wp.uint64  # bounds of the emitter triangles, for light-sampling pdfs
+    points: wp.array(dtype=wp.vec3)
+    indices: wp.array(dtype=wp.int32)  # 3 per triangle, into points
+    tri_emission: wp.array(dtype=wp.float32)  # radiance of each triangle's front face
+    emitter_tri: wp.array(dtype=wp.int32)  # emitter k → triangle index in `mesh`
+    emitter_area: wp.array(dtype=wp.float32)
+    area_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1
+    power_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1 (radiance × area)
+    total_area: wp.float32
+    total_power: wp.float32  # Σ radiance × area
+    emitter_count: wp.int32
+
+
+@wp.struct
+class ReceiverData:
+    """Receiver points, normals and the material of each."""
+
+    position: wp.array(dtype=wp.vec3)
+    normal: wp.array(dtype=wp.vec3)
+    material: wp.array(dtype=wp.int32)  # vocabulary.MATERIALS code
+    albedo: wp.array(dtype=wp.float32)
+    exponent: wp.array(dtype=wp.float32)
+    view: wp.array(dtype=wp.vec3)  # unit direction towards the viewer
+    slab: wp.array(dtype=wp.float32)  # self-hit slab height above the tangent plane
+
+
+def check_device(device: str, what: str = "device") -> str:
+    """``device`` if it names a Warp device of this machine (cpu, cuda, cuda:N), else a
+    one-line error saying which devices exist."""
+    name = str(device)
+    if name == "cpu":
+        return name
+    match = re.fullmatch(r"cuda(?::(\d+))?", name)
+    if match is None:
+        raise WarpisError(f"{what} {name!r}: unknown device (valid: cpu, cuda, cuda:N)")
+    count = wp.get_cuda_device_count()
+    if count == 0:
+        raise WarpisError(f"{what} {name!r}: this machine has no CUDA device (use cpu)")
+    ordinal = int(match.group(1) or 0)
+    if ordinal >= count:
+        raise WarpisError(f"{what} {name!r}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+    return name
+
+
+@dataclass(eq=False)
+class DeviceScene:
+    """The Warp side of one scene content on one device (see :func:`upload`)."""
+
+    device: str  # Warp's name for the device ("cpu", "cuda:0")
+    data: Any  # SceneData
+    receiver_data: Any  # ReceiverData
+    slab: np.ndarray  # (R,) float64, read-only: self-hit slab height of each receiver
+    mesh: wp.Mesh  # data.mesh is its id: the struct does not keep it alive
+    emitter_bvh: wp.Bvh  # likewise data.emitter_bvh
+    _derived: dict[str, Any] = field(default_factory=dict, repr=False)
+    _lock: Any = field(default_factory=threading.RLock, repr=False)
+
+    def cached(self, key: str, build: Callable[[], T]) -> T:
+        """``build()``, computed once for this content and device and kept with it (the
+        light table, theory's block variances): nothing is attached to a Scene."""
+        with self._lock:
+            if key not in self._derived:
+                self._derived[key] = build()
+            return self._derived[key]
+
+
+_cache: OrderedDict[tuple[str, str], DeviceScene] = OrderedDict()
+_cache_lock = threading.Lock()
+
+
+def upload(scene: Scene, device: str | None = None) -> DeviceScene:
+    """The Warp side of ``scene`` on ``device`` (default ``scene.device``), built on first
+    use and then shared by every scene with the same digest."""
+    name = scene.device if device is None else check_device(device)
+    alias = wp.get_device(name).alias  # "cuda" and "cuda:0" share an entry
+    key = (scene.digest, alias)
+    with _cache_lock:  # one build per key even when threads ask at once
+        entry = _cache.get(key)
+        if entry is None:
+            entry = _cache[key] = _build(scene, alias)
+            while len(_cache) > DEVICE_CACHE_SIZE:
+                _cache.popitem(last=False)
+        _cache.move_to_end(key)
+        return entry
+
+
+def clear_device_cache() -> None:
+    """Drop every cached upload (their Warp memory is freed once no caller holds them)."""
+    with _cache_lock:
+        _cache.clear()
+
+
+def device_cache_keys() -> list[tuple[str, str]]:
+    """(digest, device) of each cached upload, least recently used first."""
+    with _cache_lock:
+        return list(_cache)
+
+
+def _cdf(weights: np.ndarray) -> np.ndarray:
+    c = np.concatenate([[0.0], np.cumsum(weights, dtype=np.float64)])
+    c /= c[-1]
+    c[-1] = 1.0
+    return c.astype(np.float32)
+
+
+@wp.kernel
+def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                 position: wp.array(dtype=wp.vec3), slab: wp.array(dtype=wp.float32)):
+    """Slab height of each receiver: SELF_HIT_SLAB × the largest coordinate magnitude of
+    the receiver and of every triangle whose bounds hold it (its own surface among them).
+
+    Warp's watertight ray test works on vertex − origin differences, so its rounding
+    scales with those magnitudes; the slab follows them and nothing else (no scene size).
+    """
+    r = wp.tid()
+    x = position[r]
+    scale = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
+    reach = scale * 1.0e-6 + 1.0e-30
+    query = wp.mesh_query_aabb(mesh, x - wp.vec3(reach), x + wp.vec3(reach))
+    face = wp.int32(0)
+    while wp.mesh_query_aabb_next(query, face):
+        for j in range(3):
+            v = points[indices[face * 3 + j]]
+            scale = wp.max(scale, wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2])))
+    slab[r] = scale * SELF_HIT_SLAB
+
+
+def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 bounds of emitter triangles, widened by a little of each triangle's own
+    size and magnitude: flat (axis-aligned) triangles get boxes of non-zero width, and a
+    ray the widened triangle test (EDGE_SLACK) accepts is never culled by float32 box
+    rounding.  A wider box costs a few more triangle tests, never a wrong pdf."""
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    pad = 1e-4 * (hi - lo).max(axis=1) + 2.0**-14 * np.abs(corners).max(axis=(1, 2))
+    return (lo - pad[:, None]).astype(np.float32), (hi + pad[:, None]).astype(np.float32)
+
+
+def _scene_data(scene: Scene) -> tuple[Any, wp.Mesh, wp.Bvh]:
+    """The SceneData struct of ``scene`` on the current device, with its mesh and BVH."""
+    points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3)
+    indices = wp.array(scene.triangles.reshape(-1).astype(np.int32), dtype=wp.int32)
+    mesh = wp.Mesh(points=points, indices=indices)
+    lower, upper = _emitter_boxes(scene.triangle_vertices(scene.emitters))
+    emitter_bvh = wp.Bvh(wp.array(lower, dtype=wp.vec3), wp.array(upper, dtype=wp.vec3))
+    d = SceneData()
+    d.mesh = mesh.id
+    d.emitter_bvh = emitter_bvh.id
+    d.points = points
+    d.indices = indices
+    d.tri_emission = wp.array(scene.emission.astype(np.float32), dtype=wp.float32)
+    d.emitter_tri = wp.array(scene.emitters, dtype=wp.int32)
+    d.emitter_area = wp.array(scene.emitter_areas.astype(np.float32), dtype=wp.float32)
+    d.area_cdf = wp.array(_cdf(scene.emitter_areas), dtype=wp.float32)
+    d.power_cdf = wp.array(_cdf(scene.emitter_areas * scene.emitter_radiance), dtype=wp.float32)
+    d.total_area = float(scene.total_emitter_area)
+    d.total_power = float(scene.total_power)
+    d.emitter_count = int(scene.emitter_count)
+    return d, mesh, emitter_bvh
+
+
+def _receiver_data(scene: Scene, d: Any) -> Any:
+    """The ReceiverData struct of ``scene``, its slabs computed against the mesh of ``d``."""
+    r = scene.receivers
+    rd = ReceiverData()
+    rd.position = wp.array(r.positions.astype(np.float32), dtype=wp.vec3)
+    rd.normal = wp.array(r.normals.astype(np.float32), dtype=wp.vec3)
+    rd.material = wp.array(r.material.astype(np.int32), dtype=wp.int32)
+    rd.albedo = wp.array(r.albedo.astype(np.float32), dtype=wp.float32)
+    rd.exponent = wp.array(r.exponent.astype(np.float32), dtype=wp.float32)
+    rd.view = wp.array(r.view.astype(np.float32), dtype=wp.vec3)
+    rd.slab = wp.zeros(len(r), dtype=wp.float32)
+    wp.launch(_slab_kernel, dim=len(r), inputs=[d.mesh, d.points, d.indices, rd.position, rd.slab])
+    return rd
+
+
+def _build(scene: Scene, device: str) -> DeviceScene:
+    """Upload ``scene`` to ``device``: its mesh, emitter BVH, structs and slabs."""
+    with wp.ScopedDevice(device):
+        d, mesh, emitter_bvh = _scene_data(scene)
+        rd = _receiver_data(scene, d)
+    slab = rd.slab.numpy().astype(np.float64)
+    slab.flags.writeable = False
+    return DeviceScene(device, d, rd, slab, mesh, emitter_bvh)
