@@ -74,13 +74,7 @@ def _emit(data: Any, as_json: bool, text: str) -> None:
 
 def _print(text: str) -> None:
     """Print and flush the results; a full or unwritable stdout is a one-line error."""
-    try:
-        print(text, flush=True)
-    except BrokenPipeError:
-        raise
-    except OSError as exc:
-        _silence_stdout()
-        raise WarpisError(f"standard output: cannot write: {exc.strerror}") from None
+    _to_stdout(lambda: print(text, flush=True))
 
 
 def _load(args: argparse.Namespace):
@@ -466,8 +460,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _print_flush() -> None:
     """Flush what commands printed, so that a full stdout fails here and not at exit."""
+    _to_stdout(sys.stdout.flush)
+
+
+def _to_stdout(write: Callable[[], Any]) -> None:
+    """Run a write to stdout; a full or unwritable stdout is a one-line error (a closed
+    pipe is not: main() stops quietly on it)."""
     try:
-        sys.stdout.flush()
+        write()
     except BrokenPipeError:
         raise
     except OSError as exc:
