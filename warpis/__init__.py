@@ -16,6 +16,8 @@ else:  # pragma: no cover - warp-lang before the logging API
 
 from .errors import WarpisError  # noqa: E402
 from .scene import Scene, bundled_scenes, load_scene  # noqa: E402
+from .techniques import register_technique, unregister_technique  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["Scene", "WarpisError", "bundled_scenes", "load_scene", "__version__"]
+__all__ = ["Scene", "WarpisError", "bundled_scenes", "load_scene", "register_technique", "unregister_technique",
+           "__version__"]

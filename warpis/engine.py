@@ -30,7 +30,7 @@ import warp as wp
 from . import limits
 from .device import DeviceScene, upload
 from .errors import WarpisError
-from .estimators import Estimator, KernelArgs, parse_estimator, trial_kernel
+from .estimators import Estimator, KernelArgs, parse_estimator, trial_kernel_for_registry
 from .scene import Scene
 from .stats import SampleMoments
 from .techniques import light_table
@@ -85,10 +85,11 @@ class _Job:
     head: tuple  # kernel inputs before the trial offset
     tail: tuple  # kernel inputs between the trial offset and the output
     upload: DeviceScene  # owns the mesh and BVH that head's struct knows by id only
+    kernel: Any  # the trial kernel (the built-in one unless user techniques are registered)
 
     def launch(self, start: int, count: int, buf: wp.array) -> None:
         """Trials start..start+count−1 of every receiver into columns 0..count−1 of ``buf``."""
-        wp.launch(trial_kernel, dim=(self.rows, count), device=self.device,
+        wp.launch(self.kernel, dim=(self.rows, count), device=self.device,
                   inputs=[*self.head, start, *self.tail, buf])
 
 
@@ -106,7 +107,7 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     head = (up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
     tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols)
-    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up)
+    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry())
 
 
 def _chunk_size(job: _Job, chunk: int | None, workers: int) -> int:
@@ -170,7 +171,7 @@ def _drive(job: _Job, work: Callable[[int, np.ndarray], T], finish: Callable[[in
     # On the CPU even one worker is a pool thread: the calling thread then waits in
     # wait(), where Ctrl-C raises at once, rather than in Warp's calls, where it can land
     # in a finalizer (array.__del__) and be swallowed.
-    wp.load_module(trial_kernel.module, device=job.device)  # compile once, before threads race to
+    wp.load_module(job.kernel.module, device=job.device)  # compile once, before threads race to
     pool = ThreadPoolExecutor(max_workers=workers)
     running: dict[Future, int] = {}
     try:

@@ -19,7 +19,9 @@ k, ḡ their average, N_g techniques, m = N/N_g samples per technique):
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import Any
 
 import warp as wp
 
@@ -29,7 +31,7 @@ from .integrand import ShadingPoint, integrand, shading_point
 from .patterns import pattern_point
 from .rng import stream, uniform
 from .device import ReceiverData, SceneData
-from .techniques import LightTable, sample_direction, technique_pdf
+from .techniques import LightTable, dispatch, sample_direction, technique_pdf, user_techniques
 from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Combiner, Pattern, grid_shape
 
 # The kernels' combiner codes, from the registry (vocabulary.COMBINERS).
@@ -157,21 +159,6 @@ class KernelArgs:
 
 
 @wp.func
-def other_pdfs(techs: wp.array(dtype=wp.int32), k: wp.int32, pdf_k: float, scene: SceneData, table: LightTable,
-               sp: ShadingPoint, w: wp.vec3, power: wp.int32) -> float:
-    """Σ_j g_j(ω)^power over all techniques, reusing g_k(ω) = pdf_k."""
-    acc = float(0.0)
-    for j in range(techs.shape[0]):
-        g = pdf_k
-        if j != k:
-            g = technique_pdf(techs[j], scene, table, sp, w)
-        if power == 2:
-            g = g * g
-        acc = acc + g
-    return acc
-
-
-@wp.func
 def contribution(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
     """f(ω) for a sampled direction; 0 for a failed sample (zero vector).
 
@@ -183,69 +170,103 @@ def contribution(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
     return integrand(scene, sp, w)
 
 
-@wp.func
-def mixture_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
-                  pattern: wp.int32, techs: wp.array(dtype=wp.int32), n: wp.int32, rows: wp.int32,
-                  cols: wp.int32) -> wp.float64:
-    n_g = techs.shape[0]
-    s = stream(seed, sp.receiver, trial, 0)
-    s_pick = stream(seed, sp.receiver, trial, PICK_STREAM)
-    total = wp.float64(0.0)
-    for i in range(n):
-        u = pattern_point(pattern, s, i, n, rows, cols)
-        k = wp.min(wp.int32(uniform(s_pick, i, 0) * float(n_g)), n_g - 1)
-        w = sample_direction(techs[k], scene, table, sp, u)
-        f = contribution(scene, sp, w)
-        if f > 0.0:
-            pdf = technique_pdf(techs[k], scene, table, sp, w)
-            if pdf > 0.0:
-                gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
-                total = total + wp.float64(f / gbar)
-    return total / wp.float64(n)
+def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -> Any:
+    """The trial kernel over the technique dispatch ``sample_direction``/``technique_pdf``
+    (the built-in functions, or those of :func:`warpis.techniques.dispatch` for user techniques)."""
 
+    @wp.func(module=module)
+    def other_pdfs(techs: wp.array(dtype=wp.int32), k: wp.int32, pdf_k: float, scene: SceneData, table: LightTable,
+                   sp: ShadingPoint, w: wp.vec3, power: wp.int32) -> float:
+        """Σ_j g_j(ω)^power over all techniques, reusing g_k(ω) = pdf_k."""
+        acc = float(0.0)
+        for j in range(techs.shape[0]):
+            g = pdf_k
+            if j != k:
+                g = technique_pdf(techs[j], scene, table, sp, w)
+            if power == 2:
+                g = g * g
+            acc = acc + g
+        return acc
 
-@wp.func
-def stratified_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
-                     pattern: wp.int32, combiner: wp.int32, techs: wp.array(dtype=wp.int32), m: wp.int32,
-                     rows: wp.int32, cols: wp.int32) -> wp.float64:
-    """single, balance, power and biased: m samples from each technique's own pattern."""
-    n_g = techs.shape[0]
-    total = wp.float64(0.0)
-    for k in range(n_g):
-        s = stream(seed, sp.receiver, trial, k)
-        for i in range(m):
-            u = pattern_point(pattern, s, i, m, rows, cols)
+    @wp.func(module=module)
+    def mixture_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
+                      pattern: wp.int32, techs: wp.array(dtype=wp.int32), n: wp.int32, rows: wp.int32,
+                      cols: wp.int32) -> wp.float64:
+        n_g = techs.shape[0]
+        s = stream(seed, sp.receiver, trial, 0)
+        s_pick = stream(seed, sp.receiver, trial, PICK_STREAM)
+        total = wp.float64(0.0)
+        for i in range(n):
+            u = pattern_point(pattern, s, i, n, rows, cols)
+            k = wp.min(wp.int32(uniform(s_pick, i, 0) * float(n_g)), n_g - 1)
             w = sample_direction(techs[k], scene, table, sp, u)
             f = contribution(scene, sp, w)
             if f > 0.0:
-                if combiner == BIASED:
-                    total = total + wp.float64(f)
-                else:
-                    pdf = technique_pdf(techs[k], scene, table, sp, w)
-                    if pdf > 0.0:
-                        if combiner == SINGLE:
-                            total = total + wp.float64(f / pdf)
-                        elif combiner == BALANCE:
-                            gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
-                            total = total + wp.float64(f / gbar)
-                        else:
-                            total = total + wp.float64(f * pdf / other_pdfs(techs, k, pdf, scene, table, sp, w, 2))
-    if combiner == BALANCE:
-        return total / wp.float64(m * n_g)
-    return total / wp.float64(m)
+                pdf = technique_pdf(techs[k], scene, table, sp, w)
+                if pdf > 0.0:
+                    gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
+                    total = total + wp.float64(f / gbar)
+        return total / wp.float64(n)
+
+    @wp.func(module=module)
+    def stratified_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
+                         pattern: wp.int32, combiner: wp.int32, techs: wp.array(dtype=wp.int32), m: wp.int32,
+                         rows: wp.int32, cols: wp.int32) -> wp.float64:
+        """single, balance, power and biased: m samples from each technique's own pattern."""
+        n_g = techs.shape[0]
+        total = wp.float64(0.0)
+        for k in range(n_g):
+            s = stream(seed, sp.receiver, trial, k)
+            for i in range(m):
+                u = pattern_point(pattern, s, i, m, rows, cols)
+                w = sample_direction(techs[k], scene, table, sp, u)
+                f = contribution(scene, sp, w)
+                if f > 0.0:
+                    if combiner == BIASED:
+                        total = total + wp.float64(f)
+                    else:
+                        pdf = technique_pdf(techs[k], scene, table, sp, w)
+                        if pdf > 0.0:
+                            if combiner == SINGLE:
+                                total = total + wp.float64(f / pdf)
+                            elif combiner == BALANCE:
+                                gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
+                                total = total + wp.float64(f / gbar)
+                            else:
+                                total = total + wp.float64(f * pdf / other_pdfs(techs, k, pdf, scene, table, sp, w, 2))
+        if combiner == BALANCE:
+            return total / wp.float64(m * n_g)
+        return total / wp.float64(m)
+
+    @wp.kernel(module=module)
+    def trial_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
+                     trial_offset: wp.int32, seed: wp.uint32, pattern: wp.int32, combiner: wp.int32,
+                     techs: wp.array(dtype=wp.int32), m: wp.int32, rows: wp.int32, cols: wp.int32,
+                     out: wp.array2d(dtype=wp.float64)):
+        """One estimate per thread: receiver row i, trial trial_offset + j, into out[i, j]
+        (``out`` holds one launch's trials; the trial number only seeds the generator)."""
+        i, j = wp.tid()
+        trial = trial_offset + j
+        sp = shading_point(scene, recv, receivers[i])
+        if combiner == MIXTURE:
+            out[i, j] = mixture_trial(scene, table, sp, seed, trial, pattern, techs, m, rows, cols)
+        else:
+            out[i, j] = stratified_trial(scene, table, sp, seed, trial, pattern, combiner, techs, m, rows, cols)
+
+    return trial_kernel
 
 
-@wp.kernel
-def trial_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
-                 trial_offset: wp.int32, seed: wp.uint32, pattern: wp.int32, combiner: wp.int32,
-                 techs: wp.array(dtype=wp.int32), m: wp.int32, rows: wp.int32, cols: wp.int32,
-                 out: wp.array2d(dtype=wp.float64)):
-    """One estimate per thread: receiver row i, trial trial_offset + j, into out[i, j]
-    (``out`` holds one launch's trials; the trial number only seeds the generator)."""
-    i, j = wp.tid()
-    trial = trial_offset + j
-    sp = shading_point(scene, recv, receivers[i])
-    if combiner == MIXTURE:
-        out[i, j] = mixture_trial(scene, table, sp, seed, trial, pattern, techs, m, rows, cols)
-    else:
-        out[i, j] = stratified_trial(scene, table, sp, seed, trial, pattern, combiner, techs, m, rows, cols)
+trial_kernel = _make_trial_kernel(sample_direction, technique_pdf, None)
+
+
+@functools.lru_cache(maxsize=None)
+def _trial_kernel_for(user: tuple) -> Any:
+    if not user:
+        return trial_kernel
+    return _make_trial_kernel(*dispatch(user), "unique")
+
+
+def trial_kernel_for_registry() -> Any:
+    """The trial kernel that knows every registered technique: the built-in ``trial_kernel``
+    itself unless user techniques are registered (one kernel per set of them, cached)."""
+    return _trial_kernel_for(user_techniques())

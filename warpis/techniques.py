@@ -23,9 +23,19 @@ techniques a direction crossing several emitter triangles (the near and far side
 sphere light, an emitter behind an occluder) carries the *sum* of their densities: the
 pdf traverses a BVH of the emitter triangles alone and visits every crossing.  The pdf
 a sample reports is computed by that same function, so the two cannot disagree.
+
+User techniques (:func:`register_technique`): a ``sample``/``pdf`` pair of ``@wp.func`` s
+on a ``ShadingPoint``.  :func:`dispatch` wraps the built-in dispatch in one branch per user
+technique (its code a ``wp.static`` constant), and the kernels that dispatch on codes
+(here :func:`numpy_kernels`, ``estimators.trial_kernel_for_registry``, the theory's
+evaluation kernel) are built from it in a unique Warp module, once per registered set;
+with no user technique they are the built-in kernels themselves.
 """
 
 from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
 
 import numpy as np
 import warp as wp
@@ -33,7 +43,8 @@ import warp as wp
 from .device import DeviceScene, ReceiverData, SceneData, upload
 from .integrand import ShadingPoint, shading_point
 from .scene import Scene
-from .vocabulary import TECHNIQUES
+from .errors import WarpisError
+from .vocabulary import TECHNIQUES, Technique
 from .warps import (
     cosine_hemisphere_pdf,
     phong_lobe_pdf,
@@ -329,25 +340,139 @@ def technique_code(name: str) -> int:
     return TECHNIQUES.lookup(name).code
 
 
-# --------------------------------------------------------------------------- numpy wrappers
+# --------------------------------------------------------------------------- user techniques
 
 
-@wp.kernel
-def _sample_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
-                   u: wp.array(dtype=wp.vec2), dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    sp = shading_point(scene, recv, r)
-    w, p = sample_technique(tech, scene, table, sp, u[i])
-    dirs[i] = w
-    pdf[i] = wp.float64(p)
+class UserTechnique(NamedTuple):
+    """A technique registered from Python: its code and its two Warp functions."""
+
+    name: str
+    code: int
+    sample: Any  # @wp.func (sp: ShadingPoint, u: wp.vec2) -> wp.vec3 (zero vector: no sample)
+    pdf: Any  # @wp.func (sp: ShadingPoint, w: wp.vec3) -> float, solid-angle density
 
 
-@wp.kernel
-def _pdf_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
-                dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
-    i = wp.tid()
-    sp = shading_point(scene, recv, r)
-    pdf[i] = wp.float64(technique_pdf(tech, scene, table, sp, wp.normalize(dirs[i])))
+_USER: dict[str, UserTechnique] = {}
+
+
+def register_technique(name: str, sample: Any, pdf: Any, *, description: str = "a user-defined technique",
+                       light: bool = False, cost: float = 1.0) -> Technique:
+    """Add a technique written as a Warp ``sample``/``pdf`` pair to ``vocabulary.TECHNIQUES``.
+
+    ``sample(sp: ShadingPoint, u: wp.vec2) -> wp.vec3`` maps a primary sample to a unit
+    direction (the zero vector for no sample); ``pdf(sp: ShadingPoint, w: wp.vec3) -> float``
+    is the solid-angle density with which ``sample`` produces ω, whatever ω hits.  The entry
+    gets the next free code and no theory (``inverse_pdf_integral=None``).  The kernels
+    that dispatch on technique codes are rebuilt for the registered set (once per set).
+    """
+    if not isinstance(sample, wp.Function) or not isinstance(pdf, wp.Function):
+        raise WarpisError(f"technique {name!r}: sample and pdf must be @wp.func functions")
+    if name in TECHNIQUES:
+        raise WarpisError(f"technique {name!r} is already registered")
+    if not name or any(c in name for c in ":+ "):
+        raise WarpisError(f"technique {name!r}: a name must be non-empty, without ':', '+' or spaces")
+    code = max(e.code for e in TECHNIQUES.values()) + 1
+    entry = Technique(name=name, code=code, description=description, light=light,
+                      inverse_pdf_integral=None, cost=cost)
+    TECHNIQUES[name] = entry
+    _USER[name] = UserTechnique(name, code, sample, pdf)
+    return entry
+
+
+def unregister_technique(name: str) -> None:
+    """Remove a technique added by :func:`register_technique`."""
+    if name not in _USER:
+        raise WarpisError(f"technique {name!r} was not added by register_technique")
+    del _USER[name]
+    if name in TECHNIQUES:
+        del TECHNIQUES[name]
+
+
+def user_techniques() -> tuple[UserTechnique, ...]:
+    """The registered user techniques still in the registry, in registration order."""
+    return tuple(t for t in _USER.values() if t.name in TECHNIQUES and TECHNIQUES[t.name].code == t.code)
+
+
+def _with_user_pdf(inner: Any, code: int, user_pdf: Any) -> Any:
+    @wp.func(module="unique")
+    def pdf_dispatch(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, w: wp.vec3) -> float:
+        if tech == wp.static(code):
+            return user_pdf(sp, w)
+        return inner(tech, scene, table, sp, w)
+
+    return pdf_dispatch
+
+
+def _with_user_sample(inner: Any, code: int, user_sample: Any) -> Any:
+    @wp.func(module="unique")
+    def sample_dispatch(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint,
+                        u: wp.vec2) -> wp.vec3:
+        if tech == wp.static(code):
+            return user_sample(sp, u)
+        return inner(tech, scene, table, sp, u)
+
+    return sample_dispatch
+
+
+@functools.lru_cache(maxsize=None)
+def dispatch(user: tuple[UserTechnique, ...]) -> tuple[Any, Any]:
+    """``(sample_direction, technique_pdf)`` that also know the user techniques ``user``
+    (the built-in functions themselves when there are none)."""
+    sample, pdf = sample_direction, technique_pdf
+    for t in user:
+        sample = _with_user_sample(sample, t.code, t.sample)
+        pdf = _with_user_pdf(pdf, t.code, t.pdf)
+    return sample, pdf
+
+
+@functools.lru_cache(maxsize=None)
+def sampler(user: tuple[UserTechnique, ...]) -> Any:
+    """``sample_technique`` that also knows the user techniques ``user`` (itself when none)."""
+    if not user:
+        return sample_technique
+    sample_direction, technique_pdf = dispatch(user)
+
+    @wp.func(module="unique")
+    def sample_user(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2):
+        w = sample_direction(tech, scene, table, sp, u)
+        if wp.length_sq(w) == 0.0:
+            return w, float(0.0)
+        return w, technique_pdf(tech, scene, table, sp, w)
+
+    return sample_user
+
+
+def _make_numpy_kernels(sample_technique: Any, technique_pdf: Any, module: Any) -> tuple[Any, Any]:
+    @wp.kernel(module=module)
+    def sample_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
+                      u: wp.array(dtype=wp.vec2), dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        sp = shading_point(scene, recv, r)
+        w, p = sample_technique(tech, scene, table, sp, u[i])
+        dirs[i] = w
+        pdf[i] = wp.float64(p)
+
+    @wp.kernel(module=module)
+    def pdf_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
+                   dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        sp = shading_point(scene, recv, r)
+        pdf[i] = wp.float64(technique_pdf(tech, scene, table, sp, wp.normalize(dirs[i])))
+
+    return sample_kernel, pdf_kernel
+
+
+# The built-in pair: the same factory over the built-in dispatch, in this module.
+_sample_kernel, _pdf_kernel = _make_numpy_kernels(sample_technique, technique_pdf, None)
+
+
+@functools.lru_cache(maxsize=None)
+def numpy_kernels(user: tuple[UserTechnique, ...]) -> tuple[Any, Any]:
+    """``(_sample_kernel, _pdf_kernel)`` for the user techniques ``user`` (the built-in pair
+    when there are none)."""
+    if not user:
+        return _sample_kernel, _pdf_kernel
+    return _make_numpy_kernels(sampler(user), dispatch(user)[1], "unique")
 
 
 def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -363,7 +488,7 @@ def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray
     uu = wp.array(np.ascontiguousarray(u, dtype=np.float32), dtype=wp.vec2, device=dev)
     dirs = wp.zeros(len(u), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(u), dtype=wp.float64, device=dev)
-    wp.launch(_sample_kernel, dim=len(u), device=dev,
+    wp.launch(numpy_kernels(user_techniques())[0], dim=len(u), device=dev,
               inputs=[up.data, up.receiver_data, light_table(scene), technique_code(technique), receiver,
                       uu, dirs, pdf])
     return dirs.numpy(), pdf.numpy()
@@ -375,7 +500,7 @@ def direction_pdf(scene: Scene, receiver: int, technique: str, directions: np.nd
     dev = up.device
     dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(directions), dtype=wp.float64, device=dev)
-    wp.launch(_pdf_kernel, dim=len(directions), device=dev,
+    wp.launch(numpy_kernels(user_techniques())[1], dim=len(directions), device=dev,
               inputs=[up.data, up.receiver_data, light_table(scene), technique_code(technique), receiver,
                       dirs, pdf])
     return pdf.numpy()

@@ -30,10 +30,12 @@ budget is spent, which the result then says.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -44,7 +46,8 @@ from .errors import WarpisError
 from .estimators import Estimator, parse_estimator
 from .integrand import integrand, shading_point
 from .scene import Scene
-from .techniques import LightTable, light_table, sample_technique, technique_pdf
+from .techniques import (LightTable, dispatch, light_table, sample_technique, sampler, technique_pdf,
+                         user_techniques)
 from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Blocks
 
 REL_TOL = 0.01
@@ -57,25 +60,40 @@ SEED = 0x7E0
 # --------------------------------------------------------------------------- kernel
 
 
-@wp.kernel
-def _evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, r: wp.int32,
-                     techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2),
-                     f_out: wp.array(dtype=wp.float64), pdf_out: wp.array2d(dtype=wp.float64)):
-    """f and every technique's pdf at the direction technique k maps u[i] to."""
-    i = wp.tid()
-    sp = shading_point(scene, recv, r)
-    w, pdf = sample_technique(techs[k], scene, table, sp, u[i])
-    f = float(0.0)
-    if pdf > 0.0:
-        f = integrand(scene, sp, w)
-    for j in range(techs.shape[0]):
-        g = pdf
-        if j != k:
-            g = float(0.0)
-            if pdf > 0.0:
-                g = technique_pdf(techs[j], scene, table, sp, w)
-        pdf_out[i, j] = wp.float64(g)
-    f_out[i] = wp.float64(f)
+def _make_evaluate_kernel(sample_technique: Any, technique_pdf: Any, module: Any) -> Any:
+    @wp.kernel(module=module)
+    def evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, r: wp.int32,
+                         techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2),
+                         f_out: wp.array(dtype=wp.float64), pdf_out: wp.array2d(dtype=wp.float64)):
+        """f and every technique's pdf at the direction technique k maps u[i] to."""
+        i = wp.tid()
+        sp = shading_point(scene, recv, r)
+        w, pdf = sample_technique(techs[k], scene, table, sp, u[i])
+        f = float(0.0)
+        if pdf > 0.0:
+            f = integrand(scene, sp, w)
+        for j in range(techs.shape[0]):
+            g = pdf
+            if j != k:
+                g = float(0.0)
+                if pdf > 0.0:
+                    g = technique_pdf(techs[j], scene, table, sp, w)
+            pdf_out[i, j] = wp.float64(g)
+        f_out[i] = wp.float64(f)
+
+    return evaluate_kernel
+
+
+_evaluate_kernel = _make_evaluate_kernel(sample_technique, technique_pdf, None)
+
+
+@functools.lru_cache(maxsize=None)
+def _evaluate_kernel_for(user: tuple) -> Any:
+    """``_evaluate_kernel`` itself, or one that also knows the user techniques ``user``."""
+    if not user:
+        return _evaluate_kernel
+
+    return _make_evaluate_kernel(sampler(user), dispatch(user)[1], "unique")
 
 
 def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u: np.ndarray
@@ -88,6 +106,7 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
     dev = up.device
     codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32, device=dev)
     table = light_table(scene)
+    kernel = _evaluate_kernel_for(user_techniques())
     f_all = np.empty(len(u))
     pdf_all = np.empty((len(u), len(techniques)))
 
@@ -95,7 +114,7 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
         uu = wp.array(np.ascontiguousarray(u[lo:hi], np.float32), dtype=wp.vec2, device=dev)
         f = wp.zeros(hi - lo, dtype=wp.float64, device=dev)
         pdf = wp.zeros((hi - lo, len(techniques)), dtype=wp.float64, device=dev)
-        wp.launch(_evaluate_kernel, dim=hi - lo, device=dev,
+        wp.launch(kernel, dim=hi - lo, device=dev,
                   inputs=[up.data, up.receiver_data, table, receiver, codes, k, uu, f, pdf])
         f_all[lo:hi] = f.numpy()
         pdf_all[lo:hi] = pdf.numpy()
@@ -105,7 +124,7 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
     if workers == 1:
         run(0, len(u))
     else:
-        wp.load_module(_evaluate_kernel.module, device=dev)
+        wp.load_module(kernel.module, device=dev)
         with ThreadPoolExecutor(max_workers=workers) as pool:
             for fut in [pool.submit(run, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]:
                 fut.result()

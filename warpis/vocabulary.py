@@ -20,6 +20,10 @@ it in the kernel module of its axis (patterns.py, estimators.py, techniques.py,
 integrand.py); its tests come from looping over the registry.  An entry may leave out its
 theory (``blocks=None``, ``weights=None``, ``inverse_pdf_integral=None``, ``slope=None``):
 the predictions then say why a form is missing instead of failing.
+
+A technique can also come from outside warpis: ``warpis.register_technique`` appends an
+entry (next free code, no theory) for a user's Warp ``sample``/``pdf`` pair, and the kernels
+that dispatch on technique codes are rebuilt for the registered set (techniques.py).
 """
 
 from __future__ import annotations
