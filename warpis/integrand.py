@@ -12,7 +12,7 @@ query accepts hits at t ≥ 0 with no t_min, so a ray from x could hit the surfa
 starts on.  The ray along ω therefore starts at x + (δ / n·ω)·ω: the same ray, with the
 part below height δ over the receiver's tangent plane skipped, δ = the receiver's
 self-hit slab (``SELF_HIT_SLAB`` × the float32 magnitude of the coordinates around x,
-see scene.py).  Nothing depends on the scene's size: scaling a scene, or adding a huge
+see device.py).  Nothing depends on the scene's size: scaling a scene, or adding a huge
 floor far away, leaves F unchanged.  Only geometry inside that slab is ignored, which
 changes F by a second-order amount (docs/theory.md, "The integrand at a receiver").
 """
