@@ -17,7 +17,7 @@ from typing import Any, NoReturn
 
 from . import limits
 from .errors import WarpisError
-from .vocabulary import estimator_help
+from .vocabulary import TECHNIQUES, estimator_help
 
 
 class _Parser(argparse.ArgumentParser):
@@ -135,11 +135,10 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_reference(args: argparse.Namespace) -> int:
-    from .limits import count_text
     from .reference import DEFAULT_REL_ERROR, MAX_QUADRATURE_SAMPLES, check_rel_error, reference
 
     rel_error = check_rel_error(args.rel_error, "--rel-error") if args.rel_error is not None else DEFAULT_REL_ERROR
-    samples = count_text(args.samples, "--samples") if args.samples is not None else MAX_QUADRATURE_SAMPLES
+    samples = limits.count_text(args.samples, "--samples") if args.samples is not None else MAX_QUADRATURE_SAMPLES
     scene = _load(args)
     with _progress(0, "samples") as bar:
         bar.bar.unit_scale = True
@@ -208,14 +207,9 @@ def cmd_verify(args: argparse.Namespace) -> int:
     techniques = tuple(args.techniques.split("+")) if args.techniques else None
     estimators = [parse_estimator(e) for e in args.estimators.split(",")] if args.estimators else None
     n_values = _int_list(args.n, "--n") if args.n else DEFAULT_N
-    out = outdir.out_option(args.out)
-    if out is not None and out.exists() and not out.is_dir():
-        raise WarpisError(f"{out}: --out must be a directory")
-    if techniques:
-        from .techniques import technique_code
-
-        for t in techniques:
-            technique_code(t)
+    out = outdir.out_option(args.out)  # a file in the way is refused when the folder is locked
+    for t in techniques or ():
+        TECHNIQUES.lookup(t)
     scene = _load(args)
     with _progress(0, "cells") as bar:
         def progress(done: int, total: int) -> None:
@@ -263,8 +257,6 @@ def _run_study(study, out) -> int:
     from .outdir import locked
     from .study import run_study
 
-    if out.exists() and not out.is_dir():
-        raise WarpisError(f"{out}: --out must be a directory")
     # Locked (run_study re-enters the lock) before anything is said: a folder in use or
     # one that cannot be written fails at once, with only its one-line error.
     with locked(out):
@@ -290,12 +282,10 @@ def _run_study(study, out) -> int:
 
 
 def _int_list(text: str, option: str) -> list[int]:
-    try:
-        values = [int(t) for t in text.split(",") if t.strip()]
-    except ValueError:
-        raise WarpisError(f"{option} takes comma-separated integers, got {text!r}") from None
-    if not values or min(values) < 1:
-        raise WarpisError(f"{option} takes positive integers, got {text!r}")
+    """Comma-separated counts, each checked by limits (no float, nothing past int32)."""
+    values = [limits.count_text(t, option) for t in text.split(",") if t.strip()]
+    if not values:
+        raise WarpisError(f"{option}: takes comma-separated positive integers, got {text!r}")
     return values
 
 

@@ -262,11 +262,6 @@ class Scene:
         tris = self.triangles if which is None else self.triangles[which]
         return self.vertices[tris]
 
-    @property
-    def diagonal(self) -> float:
-        pts = np.vstack([self.vertices, self.receivers.positions])
-        return float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
-
     def summary(self) -> dict[str, Any]:
         """Counts and emitter totals, as printed by ``warpis scenes`` and ``warpis info``."""
         return {

@@ -335,11 +335,6 @@ def _build_light_table(dev: DeviceScene, receivers: int, emitters: int) -> Light
     return table
 
 
-def technique_code(name: str) -> int:
-    """The code of a technique name, or a one-line error listing the valid names."""
-    return TECHNIQUES.lookup(name).code
-
-
 # --------------------------------------------------------------------------- user techniques
 
 
@@ -489,7 +484,7 @@ def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray
     dirs = wp.zeros(len(u), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(u), dtype=wp.float64, device=dev)
     wp.launch(numpy_kernels(user_techniques())[0], dim=len(u), device=dev,
-              inputs=[up.data, up.receiver_data, light_table(scene), technique_code(technique), receiver,
+              inputs=[up.data, up.receiver_data, light_table(scene), TECHNIQUES.lookup(technique).code, receiver,
                       uu, dirs, pdf])
     return dirs.numpy(), pdf.numpy()
 
@@ -501,6 +496,6 @@ def direction_pdf(scene: Scene, receiver: int, technique: str, directions: np.nd
     dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(directions), dtype=wp.float64, device=dev)
     wp.launch(numpy_kernels(user_techniques())[1], dim=len(directions), device=dev,
-              inputs=[up.data, up.receiver_data, light_table(scene), technique_code(technique), receiver,
+              inputs=[up.data, up.receiver_data, light_table(scene), TECHNIQUES.lookup(technique).code, receiver,
                       dirs, pdf])
     return pdf.numpy()
