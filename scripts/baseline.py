@@ -7,20 +7,20 @@ It needs the optional ``embreex`` (``pip install -e ".[bench]"``).
 ``independent:single:light-area`` and ``jittered:balance:light-area+cosine`` written
 the obvious way without Warp: per receiver, the (trials × samples) primary samples are
 drawn with numpy's :class:`~numpy.random.Generator`, mapped to directions with the same
-maps as :mod:`warpis.warps` / :mod:`warpis.techniques`, and the rays are cast with
+maps as :mod:`warpis.kernels.warps` / :mod:`warpis.kernels.techniques`, and the rays are cast with
 trimesh's Embree intersector (:class:`trimesh.ray.ray_pyembree.RayMeshIntersector`,
 package ``embreex``):
 
 * the shadow ray of each sample is one first-hit query (``intersects_first``) on the
   whole scene along ω from the receiver x, starting where it leaves the receiver's
-  self-hit slab (x + δ/(n·ω)·ω, as :mod:`warpis.integrand`); Le is the radiance of the
+  self-hit slab (x + δ/(n·ω)·ω, as :mod:`warpis.kernels.integrand`); Le is the radiance of the
   triangle hit when the ray meets its front face (dot((v1 − v0) × (v2 − v0), ω) < 0), else 0;
 * the light-area pdf at a direction is the sum over every emitter triangle the ray
-  (x, ω) crosses of (1/A_total)·t²/|cos θ_y|, as in :func:`warpis.techniques.light_pdf`;
+  (x, ω) crosses of (1/A_total)·t²/|cos θ_y|, as in :func:`warpis.kernels.techniques.light_pdf`;
   the crossings come from a second intersector built on the emitter triangles alone,
   queried with ``intersects_location(multiple_hits=True)``.
 
-The results agree with :func:`warpis.engine.run_trials` in distribution (same mean and
+The results agree with :func:`warpis.kernels.engine.run_trials` in distribution (same mean and
 variance per receiver), not bit for bit: the random numbers come from a different
 generator and everything is in float64.  Work is split into tasks of one receiver and a
 chunk of trials; each task has its own generator, seeded from (seed, receiver, first
@@ -39,13 +39,14 @@ import numpy as np
 import trimesh
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
-from warpis.engine import default_threads, select_receivers
 from warpis.errors import WarpisError
-from warpis.estimators import parse_estimator
-from warpis.device import upload
-from warpis.scene import Scene
+from warpis.kernels.device import upload
+from warpis.kernels.engine import default_threads, select_receivers
+from warpis.kernels.estimators import parse_estimator
+from warpis.kernels.integrand import MATERIALS
+from warpis.scenes import Scene
 from warpis.testing import orthonormal_frame
-from warpis.vocabulary import MATERIALS, grid_shape
+from warpis.vocabulary import grid_shape
 
 __all__ = ["BASELINE_ESTIMATORS", "BaselineScene", "baseline_scene", "baseline_trials"]
 
@@ -133,7 +134,7 @@ class BaselineScene:
 
 def baseline_scene(scene: Scene | BaselineScene) -> BaselineScene:
     """The :class:`BaselineScene` of ``scene``, built (BVHs included) once per content,
-    kept with its upload (:meth:`warpis.device.DeviceScene.cached`)."""
+    kept with its upload (:meth:`warpis.kernels.device.DeviceScene.cached`)."""
     if isinstance(scene, BaselineScene):
         return scene
     return upload(scene).cached("baseline", lambda: _built(scene))
@@ -311,7 +312,7 @@ def baseline_trials(
     receivers
         Receiver indices (default: all).
     threads
-        Worker threads (default: :func:`warpis.engine.default_threads`).  Does not change
+        Worker threads (default: :func:`warpis.kernels.engine.default_threads`).  Does not change
         results.
     chunk_samples
         About this many samples per task.  Changes which random numbers are drawn, not

@@ -4,7 +4,7 @@
                             [--repeat 5] [--seconds 1.5] [--threads T] [--device cpu]
 
 For each scene and each of the estimators ``independent:single:light-area`` and
-``jittered:balance:light-area+cosine`` it times :func:`warpis.engine.run_trials` and
+``jittered:balance:light-area+cosine`` it times :func:`warpis.kernels.engine.run_trials` and
 :func:`baseline.baseline_trials` (``scripts/baseline.py``: the same estimator in numpy,
 rays cast with trimesh's Embree intersector) on the same receivers (all of the scene's)
 and the same N.
@@ -49,10 +49,10 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
+from baseline import BASELINE_ESTIMATORS, baseline_scene, baseline_trials  # scripts/baseline.py, beside this file
 
 import warpis
-from baseline import BASELINE_ESTIMATORS, baseline_scene, baseline_trials  # scripts/baseline.py, beside this file
-from warpis.engine import default_threads, run_trials
+from warpis.kernels.engine import default_threads, run_trials
 
 DEFAULT_SCENES = ("occluded-quad", "heavy-occluder")
 PILOT_SECONDS = 0.25
@@ -176,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=None,
                     help="trials per measurement for both sides, instead of --seconds")
     ap.add_argument("--threads", type=int, default=None,
-                    help="worker threads for both sides (default: warpis.engine.default_threads(), "
+                    help="worker threads for both sides (default: warpis.kernels.engine.default_threads(), "
                          "i.e. WARPIS_THREADS or every usable core)")
     ap.add_argument("--device", default="cpu",
                     help="Warp device of warpis's side, e.g. cpu or cuda:0 (the baseline always runs "

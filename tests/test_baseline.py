@@ -5,14 +5,14 @@ distribution: per receiver of occluded-quad, the two sample means must agree wit
 combined standard errors, |x̄_w − x̄_b| ≤ 4·sqrt(se_w² + se_b²).  For normal means (M is
 large) that fails by chance with probability 2·(1 − Φ(4)) ≈ 6.3e-5 per comparison.  The
 two sample variances must agree within 4 combined fourth-moment standard errors of s²
-(``warpis.stats.variance_interval``); that interval is asymptotic, so its false-failure
+(``warpis.analysis.stats.variance_interval``); that interval is asymptotic, so its false-failure
 probability is only approximately the same 6.3e-5.  Two estimators × 6 lit receivers ×
 (mean, variance) make 24 comparisons, so by the union bound a false failure has
 probability below about 1.5e-3 (and, the seeds being fixed, every run draws the same
 samples).  Receivers in the umbra must give exactly 0 on both sides.
 
 Where no triangle occludes the light, the baseline's mean is also held against the
-closed-form irradiance (warpis.closed_form) within 4 standard errors: 2 estimators × 2
+closed-form irradiance (warpis.analysis.closed_form) within 4 standard errors: 2 estimators × 2
 unoccluded receivers add 4 comparisons, ≈ 2.5e-4 more.
 """
 
@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 
 import warpis
-from warpis.closed_form import irradiance_closed_form
-from warpis.engine import run_trials
+from warpis.analysis.closed_form import irradiance_closed_form
+from warpis.analysis.stats import variance_interval
 from warpis.errors import WarpisError
-from warpis.stats import variance_interval
+from warpis.kernels.engine import run_trials
 
 # The baseline is a benchmark script, not part of the package: import it from the
 # repository's scripts/ folder, found from this file so that it works however warpis is

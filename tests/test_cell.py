@@ -1,4 +1,4 @@
-"""The one measure-against-predict pipeline (warpis/cell.py) that verify and study share:
+"""The one measure-against-predict pipeline (warpis/runs/cell.py) that verify and study share:
 its rules on constructed numbers, its row schema in both file formats, the trial floor,
 and a cell whose estimator has no exact form.
 
@@ -19,13 +19,13 @@ from conftest import write_scene
 from scipy.special import ndtri
 
 import warpis
-from warpis import cell, study, verify
-from warpis.cell import (INSIDE_SHARE, MIN_TRIALS, RATIO_TOLERANCE, Z95, RunCache, inside, measure_cell, summarize,
-                         z_score)
+from warpis.analysis.stats import variance_interval
 from warpis.errors import WarpisError
-from warpis.estimators import parse_estimator
-from warpis.stats import variance_interval
-from warpis.vocabulary import PATTERNS
+from warpis.kernels.estimators import parse_estimator
+from warpis.kernels.patterns import PATTERNS
+from warpis.runs import cell, study, verify
+from warpis.runs.cell import (INSIDE_SHARE, MIN_TRIALS, RATIO_TOLERANCE, Z95, RunCache, inside, measure_cell, summarize,
+                              z_score)
 
 TRIALS = 40
 
@@ -145,8 +145,9 @@ def test_a_measured_row_reads_the_same_in_verify_json_and_results_csv(lamp):
     json_row = verify.json_row(row)
     assert list(json_row) == ["receiver", "estimator", "n", "mean", "mean_stderr", "reference", "reference_stderr",
                               "variance", "variance_stderr", "variance_ci", "predictions", "prediction_rel_error",
-                              "inside", "z"]
-    assert all(json_row[k] == plain[k] for k in json_row if k != "prediction_rel_error")
+                              "inside", "z", "absent"]
+    assert all(json_row[k] == plain[k] for k in json_row if k not in ("prediction_rel_error", "absent"))
+    assert json_row["absent"] == {}  # a built-in estimator lacks no form in its scope
     json.dumps(json_row, allow_nan=False)
 
     typed = study.typed_row(study.csv_row(row) + ["0.1", warpis.__version__, "0123456789abcdef"])

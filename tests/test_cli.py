@@ -12,8 +12,9 @@ import json
 import math
 
 import pytest
-from conftest import BUNDLED, run_warpis, write_scene
+from conftest import BUNDLED
 from conftest import one_error_line as _one_error_line
+from conftest import run_warpis, write_scene
 
 SUMMARY_KEYS = {"scene", "triangles", "emitter_triangles", "receivers", "emitter_area", "total_power"}
 ESTIMATE = ["estimate", "occluded-quad", "--estimator", "independent:single:light-area", "--n", "8",
@@ -231,7 +232,9 @@ def test_other_bad_arguments(args, cli):
 def test_estimator_help_lists_the_registered_vocabulary(cli):
     """`warpis estimate --help` and `warpis verify --help` name every registered pattern,
     combiner and technique with its one-line description."""
-    from warpis.vocabulary import COMBINERS, PATTERNS, TECHNIQUES
+    from warpis.kernels.estimators import COMBINERS
+    from warpis.kernels.patterns import PATTERNS
+    from warpis.kernels.techniques import TECHNIQUES
 
     for command in ("estimate", "verify"):
         result = cli(command, "--help")

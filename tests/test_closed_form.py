@@ -1,4 +1,4 @@
-"""Tests of warpis.closed_form: Lambert's formula, horizon clipping, one-sided emission
+"""Tests of warpis.analysis.closed_form: Lambert's formula, horizon clipping, one-sided emission
 and the exactness mask (separating-axis pyramid test).
 
 Statistical tests compare the closed form with brute-force Monte Carlo written here in
@@ -19,13 +19,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from warpis.closed_form import (
-    clip_polygon_to_halfspace,
-    irradiance_closed_form,
-    polygon_irradiance,
-    pyramid_blockers,
-    triangle_irradiance,
-)
+from warpis.analysis.closed_form import (clip_polygon_to_halfspace, irradiance_closed_form, polygon_irradiance,
+                                         pyramid_blockers, triangle_irradiance)
 
 Z = np.array([0.0, 0.0, 1.0])
 ORIGIN = np.zeros(3)

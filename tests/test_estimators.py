@@ -21,14 +21,14 @@ import pytest
 from scipy.stats import norm
 
 import warpis
-from warpis.engine import run_trials
-from warpis.estimators import Estimator, parse_estimator
-from warpis.reference import reference
-from warpis.stats import variance_interval
-from warpis.techniques import direction_pdf, sample_directions
-from warpis.integrand import evaluate_integrand
-from warpis.verify import default_techniques
-from warpis.vocabulary import COMBINERS, MATERIALS, PATTERNS, TECHNIQUES
+from warpis.analysis.reference import reference
+from warpis.analysis.stats import variance_interval
+from warpis.kernels.engine import run_trials
+from warpis.kernels.estimators import COMBINERS, Estimator, parse_estimator
+from warpis.kernels.integrand import MATERIALS, evaluate_integrand
+from warpis.kernels.patterns import PATTERNS
+from warpis.kernels.techniques import TECHNIQUES, direction_pdf, sample_directions
+from warpis.runs.verify import default_techniques
 
 TRIALS = 4000
 N = 12  # divisible by 2 and 3, even per technique: every combination below can take it

@@ -25,11 +25,11 @@ import pytest
 from conftest import floor_entry, light_entry, one_error_line, write_scene
 
 import warpis
+from warpis.analysis.reference import reference
 from warpis.cli import _emit
-from warpis.engine import run_trials
 from warpis.errors import WarpisError
-from warpis.reference import reference
-from warpis.scene import load_scene, resolve_scene_path
+from warpis.kernels.engine import run_trials
+from warpis.scenes import load_scene, resolve_scene_path
 
 OCCLUDED_QUAD = resolve_scene_path("occluded-quad").parent
 RECEIVERS = [[-1.5, 0.0, 0.0], [-0.6, 0.0, 0.0], [-0.2, 0.0, 0.0], [0.3, 0.0, 0.0], [0.7, 0.0, 0.0],
@@ -261,7 +261,7 @@ def test_a_non_finite_estimate_stops_the_run():
     instead of feeding NaN into every figure."""
     from dataclasses import replace
 
-    from warpis.engine import run_moments
+    from warpis.kernels.engine import run_moments
 
     scene = warpis.load_scene("occluded-quad")
     scene = replace(scene, emission=np.where(scene.emission > 0, 3e38, 0.0))  # unchecked, unlike from_arrays

@@ -1,4 +1,4 @@
-"""Edge cases of the integrand f(ω) = Le(ω) · ρ(ω) · max(0, n·ω) (``warpis.integrand``).
+"""Edge cases of the integrand f(ω) = Le(ω) · ρ(ω) · max(0, n·ω) (``warpis.kernels.integrand``).
 
 Geometry: rays through the shared edge of two emitter triangles, grazing and
 below-horizon directions, lights seen from behind (one-sided emission) and receivers
@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-
-from warpis.integrand import evaluate_integrand
-from warpis.scene import load_scene
-from warpis.techniques import sample_directions
 from conftest import toml_value
+
+from warpis.kernels.integrand import evaluate_integrand
+from warpis.kernels.techniques import sample_directions
+from warpis.scenes import load_scene
 
 # --------------------------------------------------------------------------- scene files
 

@@ -2,7 +2,7 @@
 
 Every technique that applies to irradiance receivers (every registered technique but
 the glossy lobes: uniform, cosine, light-area, light-power, light-solid-angle) estimates
-F at receivers whose reference is exact (``warpis.reference.reference`` → method
+F at receivers whose reference is exact (``warpis.analysis.reference.reference`` → method
 "closed-form": Lambert's formula, no occluder):
 lights at several distances and tilts, one partly below the receiver's horizon, one
 almost edge-on, one seen from behind (F = 0).  Each estimate is the mean of 1024 trials
@@ -32,15 +32,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from warpis.cli import main
-from warpis.closed_form import irradiance_closed_form
-from warpis.engine import run_trials
-from warpis.integrand import evaluate_integrand
-from warpis.reference import reference
-from warpis.scene import load_scene
-from warpis.vocabulary import MATERIALS, TECHNIQUES as REGISTERED
 from conftest import write_scene
+
+from warpis.analysis.closed_form import irradiance_closed_form
+from warpis.analysis.reference import reference
+from warpis.cli import main
+from warpis.kernels.engine import run_trials
+from warpis.kernels.integrand import MATERIALS, evaluate_integrand
+from warpis.kernels.techniques import TECHNIQUES as REGISTERED
+from warpis.scenes import load_scene
 
 # Every technique that applies to irradiance receivers: all but the glossy materials' lobes.
 LOBES = {m.bsdf_technique for m in MATERIALS.values() if not m.diffuse}

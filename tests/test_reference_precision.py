@@ -1,4 +1,4 @@
-"""Precision and honesty of the reference quadrature (``warpis.reference``).
+"""Precision and honesty of the reference quadrature (``warpis.analysis.reference``).
 
 Calibration.  Where Lambert's closed form F is exact, K independent quadratures per
 receiver and estimator (distinct seeds) give z = (Q − F) / stderr.  Q is the mean of 32
@@ -31,19 +31,13 @@ import math
 
 import numpy as np
 import pytest
+from conftest import light_entry, write_scene
 from scipy import stats
 
-from conftest import light_entry, write_scene
-from warpis.closed_form import irradiance_closed_form
+from warpis.analysis.closed_form import irradiance_closed_form
+from warpis.analysis.reference import DIFFUSE_CANDIDATES, QUADRATURE_REPLICAS, _round_up, quadrature, reference
 from warpis.errors import WarpisError
-from warpis.reference import (
-    DIFFUSE_CANDIDATES,
-    QUADRATURE_REPLICAS,
-    _round_up,
-    quadrature,
-    reference,
-)
-from warpis.scene import load_scene
+from warpis.scenes import load_scene
 
 ALPHA = 1e-3  # false-failure probability of the calibration test as a whole
 Z_MAX = 4.5  # single comparisons: 2 · (1 − Φ(4.5)) ≈ 6.8e-6 each

@@ -1,4 +1,4 @@
-"""Tests of warpis.scene: the scene-file loader, its validation, and the Warp mesh it builds.
+"""Tests of warpis.scenes: the scene-file loader, its validation, and the Warp mesh it builds.
 
 Four parts:
 
@@ -33,10 +33,9 @@ from conftest import BUNDLED, floor_entry, light_entry, quad, run_warpis, write_
 
 import warpis
 from warpis.errors import WarpisError
-from warpis.integrand import incident_radiance
-from warpis.device import clear_device_cache, device_cache_keys
-from warpis.scene import SELF_HIT_SLAB, SceneData, load_scene
-from warpis.vocabulary import MATERIALS
+from warpis.kernels.device import SELF_HIT_SLAB, SceneData, clear_device_cache, device_cache_keys
+from warpis.kernels.integrand import MATERIALS, incident_radiance
+from warpis.scenes import load_scene
 
 MESHES = Path(str(resources.files("warpis.meshes")))
 
@@ -526,7 +525,7 @@ def _cast_kernel(scene: SceneData, origins: wp.array(dtype=wp.vec3), dirs: wp.ar
 
 def warp_cast(scene: warpis.Scene, origins: np.ndarray, dirs: np.ndarray):
     """First hit of each ray through the scene's Warp mesh: face (−1: miss), t, sign, and
-    the radiance warpis.integrand.incident_radiance returns."""
+    the radiance warpis.kernels.integrand.incident_radiance returns."""
     k = len(origins)
     args = [wp.array(origins.astype(np.float32), dtype=wp.vec3), wp.array(dirs.astype(np.float32), dtype=wp.vec3)]
     out = [wp.zeros(k, dtype=wp.int32), wp.zeros(k, dtype=wp.float32), wp.zeros(k, dtype=wp.float32),
@@ -812,7 +811,7 @@ def _toml_twin(directory: Path, filename: str = "scene.toml") -> Path:
 def test_from_arrays_is_the_scene_file_scene(tmp_path):
     """The same content from a scene file and from arrays: the same arrays, the same
     digest, one upload, bit-identical trials; only the labels differ."""
-    from warpis.engine import run_trials
+    from warpis.kernels.engine import run_trials
 
     clear_device_cache()
     from_file = load_scene(_toml_twin(tmp_path))
@@ -869,7 +868,7 @@ def test_digest_changes_with_every_result_array(tmp_path):
     """Changing any array that a result depends on (by one ulp, one index, its dtype)
     changes the digest; the labels (name, description, path, mesh names, triangle → mesh,
     receiver groups) and the device do not."""
-    from warpis.scene import DIGEST_FIELDS
+    from warpis.scenes import DIGEST_FIELDS
 
     scene = load_scene(_toml_twin(tmp_path))
     changed = _mutations(scene)
@@ -886,7 +885,7 @@ def test_digest_changes_with_every_result_array(tmp_path):
 def test_digest_and_cell_key_survive_moving_the_file(tmp_path):
     """A scene file copied elsewhere under another name (meshes beside it) has the same
     digest, and a study of it the same cell keys (name given in the file)."""
-    from warpis.study import scene_digest, study_from_dict
+    from warpis.runs.study import scene_digest, study_from_dict
 
     first = _toml_twin(tmp_path / "a")
     second = _toml_twin(tmp_path / "elsewhere" / "b", filename="renamed.toml")
@@ -901,7 +900,7 @@ def test_scene_pickles_without_warp_objects(tmp_path):
     """A scene pickles to little more than its arrays (no Warp object, nothing cached),
     comes back read-only with the same digest, and an unpickled scene uploaded afresh
     gives bit-identical trials."""
-    from warpis.engine import run_trials
+    from warpis.kernels.engine import run_trials
 
     scene = load_scene("two-lights")
     expected = run_trials(scene, "jittered:balance:light-solid-angle+cosine", 8, 128, seed=5)
@@ -930,8 +929,8 @@ def test_device_cache_builds_once_per_digest_and_device(tmp_path, monkeypatch):
     """Two loads of one file, its twin from arrays and an unpickled copy share one upload
     (mesh, structs, slabs, light table, theory's memo); another content builds another;
     nothing is attached to the scenes."""
-    from warpis import device
-    from warpis.techniques import light_table
+    from warpis.kernels import device
+    from warpis.kernels.techniques import light_table
 
     builds = []
     real = device._build

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 from warpis import limits
-from warpis.engine import BLOCK, _BlockReducer, default_threads, run_moments, run_trials
+from warpis.analysis.stats import SampleMoments, variance_interval
 from warpis.errors import WarpisError
-from warpis.scene import load_scene
-from warpis.stats import SampleMoments, variance_interval
+from warpis.kernels.engine import BLOCK, _BlockReducer, default_threads, run_moments, run_trials
+from warpis.scenes import load_scene
 
 FIELDS = ("mean", "mean_stderr", "variance", "variance_stderr", "lo", "hi")
 SPEC = "jittered:balance:light-area+cosine"
@@ -173,7 +173,7 @@ def test_warpis_threads_must_be_a_positive_integer(monkeypatch, value, words):
 # first chunk is done: Ctrl-C then arrives while launches are running and queued.
 _DRIVER = """
 import sys
-import warpis.engine as engine
+import warpis.kernels.engine as engine
 from warpis.cli import main
 
 real = engine.run_moments

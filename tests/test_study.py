@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from conftest import write_scene
 
-from warpis.study import HEADER, demo_study, load_study
+from warpis.runs.study import HEADER, demo_study, load_study
 
 STUDIES = Path(__file__).resolve().parents[1] / "scripts" / "studies"
 

@@ -3,7 +3,7 @@
 Chi-square tests (``warpis.testing.ChiSquareTest``): 10⁶ primary samples u from numpy's
 ``Generator(seed)`` go through ``sample_directions``; the histogram of the directions is
 held against the expected counts from ``direction_pdf``, for every technique of
-``vocabulary.TECHNIQUES`` at two receivers of every bundled scene (phong, whose cases
+``TECHNIQUES`` at two receivers of every bundled scene (phong, whose cases
 are listed apart, on veach-plates, the only scene with phong receivers), and the light
 techniques at two receivers of a scene written here whose tilted quad light crosses
 the receivers' tangent planes.
@@ -53,17 +53,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import warp as wp
+from conftest import write_scene
 from scipy.stats import chi2
 
-from warpis.engine import run_trials
-from warpis.integrand import evaluate_integrand
-from warpis.scene import load_scene
-from conftest import write_scene
-from warpis.stats import sidak_threshold
-from warpis.techniques import direction_pdf, light_table, sample_directions
+from warpis.analysis.stats import sidak_threshold
+from warpis.kernels.engine import run_trials
+from warpis.kernels.integrand import evaluate_integrand
+from warpis.kernels.techniques import TECHNIQUES, direction_pdf, light_table, sample_directions
+from warpis.kernels.warps import square_to_spherical_triangle
+from warpis.scenes import load_scene
 from warpis.testing import ChiSquareTest, orthonormal_frame
-from warpis.vocabulary import TECHNIQUES
-from warpis.warps import square_to_spherical_triangle
 
 FAMILY_ALPHA = 1e-3
 SAMPLES = 1_000_000

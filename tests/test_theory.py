@@ -18,13 +18,14 @@ import trimesh
 from scipy.stats import norm
 
 import warpis
-from warpis import study
-from warpis.engine import run_trials
-from warpis.estimators import Estimator
-from warpis.stats import variance_interval
-from warpis.theory import FORMS, exact_form_problem, exact_variance, moments, predictions
-from warpis.verify import default_estimators
-from warpis.vocabulary import COMBINERS, PATTERNS, Combiner, Pattern
+from warpis.analysis.stats import variance_interval
+from warpis.analysis.theory import FORMS, exact_form_problem, exact_variance, moments, predictions
+from warpis.kernels.engine import run_trials
+from warpis.kernels.estimators import COMBINERS, Estimator
+from warpis.kernels.patterns import PATTERNS
+from warpis.runs import study
+from warpis.runs.verify import default_estimators
+from warpis.vocabulary import Combiner, Pattern
 
 L = 2.0  # dome radiance
 TRIALS = 4000

@@ -27,18 +27,17 @@ import numpy as np
 import pytest
 import warp as wp
 from scipy.stats import norm
+from test_techniques import BITE_P, CHI2_RUNS, FAMILY_ALPHA, SAMPLES
 
 import warpis
-from warpis import estimators, techniques
-from warpis.engine import run_trials
-from warpis.integrand import ShadingPoint
-from warpis.reference import reference
-from warpis.stats import sidak_threshold, variance_interval
+from warpis.analysis.reference import reference
+from warpis.analysis.stats import sidak_threshold, variance_interval
+from warpis.analysis.theory import _evaluate_kernel, _evaluate_kernel_for, predictions
+from warpis.kernels import estimators, techniques
+from warpis.kernels.engine import run_trials
+from warpis.kernels.integrand import ShadingPoint
+from warpis.kernels.techniques import TECHNIQUES
 from warpis.testing import ChiSquareTest
-from warpis.theory import _evaluate_kernel, _evaluate_kernel_for, predictions
-from warpis.vocabulary import TECHNIQUES
-
-from test_techniques import BITE_P, CHI2_RUNS, FAMILY_ALPHA, SAMPLES
 
 NAME = "test-cosine-cubed"
 K = 3.0

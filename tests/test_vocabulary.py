@@ -14,11 +14,15 @@ import numpy as np
 import pytest
 
 import warpis
-from warpis import estimators, integrand, patterns, study, techniques, theory
-from warpis.estimators import Estimator, KernelArgs, parse_estimator
-from warpis.verify import default_estimators
-from warpis.vocabulary import (COMBINERS, MATERIALS, PATTERNS, TECHNIQUES, IID_SLOPE, Pattern, Registry,
-                               estimator_help, expected_slope, grid_shape)
+from warpis.analysis import theory
+from warpis.kernels import estimators, integrand, patterns, techniques
+from warpis.kernels.estimators import COMBINERS, Estimator, KernelArgs, estimator_help, parse_estimator
+from warpis.kernels.integrand import MATERIALS
+from warpis.kernels.patterns import PATTERNS
+from warpis.kernels.techniques import TECHNIQUES
+from warpis.runs import study
+from warpis.runs.verify import default_estimators
+from warpis.vocabulary import IID_SLOPE, Pattern, Registry, expected_slope, grid_shape
 
 REGISTRIES = {"pattern": PATTERNS, "combiner": COMBINERS, "technique": TECHNIQUES, "material": MATERIALS}
 # The module whose kernels branch on each axis's wp.constants.
@@ -147,7 +151,7 @@ def test_combiner_entries_are_consistent():
 def test_material_and_technique_entries_are_consistent():
     """A material's required keys are among its keys, which the scene loader can read; its
     BSDF technique is registered; every technique has a positive cost."""
-    from warpis.scene import MATERIAL_PARAMETERS
+    from warpis.scenes.toml_source import MATERIAL_PARAMETERS
 
     for material in MATERIALS.values():
         assert set(material.required) <= set(material.keys) <= set(MATERIAL_PARAMETERS)

@@ -2,6 +2,10 @@
 
 Bad input (files, scenes, estimator specs, options) ends with one line on stderr,
 ``warpis: error: <file or option>: <problem>``, and exit status 2; nothing is written.
+
+``--plugin FILE`` (any command, repeatable) runs a Python file before the command, so
+that the techniques and patterns it registers (``warpis.register_technique``,
+``warpis.register_pattern``) can be named in estimator specs and study files.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ import argparse
 import json
 import math
 import os
+import runpy
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -17,7 +22,8 @@ from typing import Any, NoReturn
 
 from . import limits
 from .errors import WarpisError
-from .vocabulary import TECHNIQUES, estimator_help
+from .kernels.estimators import estimator_help
+from .kernels.techniques import TECHNIQUES
 
 
 class _Parser(argparse.ArgumentParser):
@@ -78,7 +84,7 @@ def _print(text: str) -> None:
 
 
 def _load(args: argparse.Namespace):
-    from .scene import load_scene
+    from .scenes import load_scene
 
     return load_scene(args.scene, device=args.device)
 
@@ -95,7 +101,7 @@ _SUMMARY_HEAD = f"{'scene':<16} {'triangles':>9} {'emitters':>9} {'receivers':>9
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
-    from .scene import bundled_scenes, load_scene
+    from .scenes import bundled_scenes, load_scene
 
     rows = [load_scene(name, device=args.device).summary() for name in bundled_scenes()]
     _emit({"scenes": rows}, args.json, "\n".join([_SUMMARY_HEAD] + [_summary_line(r) for r in rows]))
@@ -135,7 +141,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_reference(args: argparse.Namespace) -> int:
-    from .reference import DEFAULT_REL_ERROR, MAX_QUADRATURE_SAMPLES, check_rel_error, reference
+    from .analysis.reference import DEFAULT_REL_ERROR, MAX_QUADRATURE_SAMPLES, check_rel_error, reference
 
     rel_error = check_rel_error(args.rel_error, "--rel-error") if args.rel_error is not None else DEFAULT_REL_ERROR
     samples = limits.count_text(args.samples, "--samples") if args.samples is not None else MAX_QUADRATURE_SAMPLES
@@ -161,10 +167,10 @@ def cmd_reference(args: argparse.Namespace) -> int:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from .cell import check_trials
-    from .engine import run_moments
-    from .estimators import parse_estimator
-    from .reference import reference
+    from .analysis.reference import reference
+    from .kernels.engine import run_moments
+    from .kernels.estimators import parse_estimator
+    from .runs.cell import check_trials
 
     est = parse_estimator(args.estimator)
     est.check_n(args.n)
@@ -200,9 +206,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 def cmd_verify(args: argparse.Namespace) -> int:
     import contextlib
 
-    from . import outdir
-    from .estimators import parse_estimator
-    from .verify import DEFAULT_N, summary_lines, verify, write_outputs
+    from .kernels.estimators import parse_estimator
+    from .runs import outdir
+    from .runs.verify import DEFAULT_N, summary_lines, verify, write_outputs
 
     techniques = tuple(args.techniques.split("+")) if args.techniques else None
     estimators = [parse_estimator(e) for e in args.estimators.split(",")] if args.estimators else None
@@ -235,8 +241,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
 def cmd_study(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from .outdir import out_option
-    from .study import default_out, load_study
+    from .runs.outdir import out_option
+    from .runs.study import default_out, load_study
 
     out = out_option(args.out)  # before the study is read: an empty --out is not "."
     study = load_study(Path(args.file), threads=args.threads)
@@ -244,8 +250,8 @@ def cmd_study(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from .outdir import out_option
-    from .study import default_out, demo_study
+    from .runs.outdir import out_option
+    from .runs.study import default_out, demo_study
 
     out = out_option(args.out)  # an empty --out is an error, not the default folder
     study = demo_study(threads=args.threads)
@@ -254,8 +260,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def _run_study(study, out) -> int:
     """Run a validated study into ``out`` with a bar of cells done and time left; say where it wrote."""
-    from .outdir import locked
-    from .study import run_study
+    from .runs.outdir import locked
+    from .runs.study import run_study
 
     # Locked (run_study re-enters the lock) before anything is said: a folder in use or
     # one that cannot be written fails at once, with only its one-line error.
@@ -308,6 +314,32 @@ class _progress:
         self.bar.close()
 
 
+# --------------------------------------------------------------------------- plugins
+
+
+def _plugin_paths(argv: Sequence[str]) -> list[str]:
+    """Every ``--plugin FILE`` (or ``--plugin=FILE``) of ``argv``, wherever it stands."""
+    pre = argparse.ArgumentParser(add_help=False)
+    pre.add_argument("--plugin", action="append", default=[])
+    known, _ = pre.parse_known_args(argv)
+    return known.plugin
+
+
+def load_plugin(path: str) -> None:
+    """Run the Python file ``path`` (it registers techniques or patterns); any failure is
+    one line naming the file."""
+    where = f"--plugin {path}"
+    if not os.path.isfile(path):
+        raise WarpisError(f"{where}: no such file")
+    try:
+        runpy.run_path(path, run_name="warpis_plugin")
+    except WarpisError as exc:
+        raise WarpisError(f"{where}: {exc}") from None
+    except (Exception, SystemExit) as exc:  # a user's file: whatever it raises is reported, not a traceback
+        message = str(exc).strip().splitlines()
+        raise WarpisError(f"{where}: {type(exc).__name__}" + (f": {message[0]}" if message else "")) from None
+
+
 # --------------------------------------------------------------------------- parser
 
 
@@ -316,17 +348,24 @@ def build_parser() -> argparse.ArgumentParser:
                                            "measured in Warp kernels and held against closed forms.")
     p.add_argument("--version", action="version", version=f"warpis {_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    # Read before the parser is built (so that help lists what plugins register); declared
+    # on every command so that it may stand anywhere.
+    plugin = argparse.ArgumentParser(add_help=False)
+    for parser in (p, plugin):
+        parser.add_argument("--plugin", action="append", metavar="FILE",
+                            help="run this Python file first (it may register techniques and patterns); repeatable")
 
     def scene_command(name: str, help: str, epilog: str | None = None) -> argparse.ArgumentParser:
         # Raw text keeps the epilog's one line per vocabulary entry.
         raw = {"formatter_class": argparse.RawDescriptionHelpFormatter} if epilog else {}
-        c = sub.add_parser(name, help=help, description=help, epilog=epilog, **raw)
+        c = sub.add_parser(name, help=help, description=help, epilog=epilog, parents=[plugin], **raw)
         c.add_argument("scene", help="a bundled scene's name (see 'warpis scenes') or a scene TOML path")
         c.add_argument("--device", default="cpu", help="Warp device: cpu (default) or cuda[:N]")
         c.add_argument("--json", action="store_true", help="print JSON instead of a table")
         return c
 
-    c = sub.add_parser("scenes", help="list the bundled scenes with triangle, emitter and receiver counts")
+    c = sub.add_parser("scenes", help="list the bundled scenes with triangle, emitter and receiver counts",
+                       parents=[plugin])
     c.add_argument("--device", default="cpu", help=argparse.SUPPRESS)
     c.add_argument("--json", action="store_true", help="print JSON instead of a table")
     c.set_defaults(func=cmd_scenes)
@@ -372,7 +411,8 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("study", help="run a study file (scenes × estimators × N) into results, figures and a report; "
                                      "resumable", description="run a study file (scenes × estimators × N) into "
                                                               "results.csv, summary.json, figures and report.md; "
-                                                              "rerunning skips finished cells")
+                                                              "rerunning skips finished cells",
+                       parents=[plugin])
     c.add_argument("file", help="the study TOML (see README, 'Studies')")
     c.add_argument("--out", help="output directory (default ./warpis-out/<name>/)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: the study's, else all cores)")
@@ -380,7 +420,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("demo", help="the main job: ten estimators on occluded-quad, variance against N, "
                                     "slopes and predictions (1–2 minutes)",
-                       description="run the built-in demo study (scripts/studies/demo.toml) on occluded-quad")
+                       description="run the built-in demo study (scripts/studies/demo.toml) on occluded-quad",
+                       parents=[plugin])
     c.add_argument("--out", help="output directory (default ./warpis-out/demo/)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
     c.set_defaults(func=cmd_demo)
@@ -422,11 +463,21 @@ def _version() -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``warpis`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    plugins = _plugin_paths(argv)
+    if plugins:
+        _quiet_warp()
+        try:
+            for path in plugins:
+                load_plugin(path)
+        except WarpisError as exc:
+            print(f"warpis: error: {exc}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     _quiet_warp()
     try:
         if hasattr(args, "device"):
-            from .scene import check_device
+            from .kernels.device import check_device
 
             check_device(args.device, "--device")
         with warnings.catch_warnings(record=True) as caught:

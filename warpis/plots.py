@@ -12,7 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from . import outdir  # noqa: E402
+from .runs import outdir  # noqa: E402
 
 FORMATS = ("png", "pdf")
 

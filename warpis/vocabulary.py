@@ -1,29 +1,30 @@
-"""The vocabulary of warpis: one registry per axis (patterns, combiners, techniques, materials).
+"""The vocabulary of warpis: what an entry of each axis (pattern, combiner, technique, material) is.
 
-Each entry is a frozen descriptor that holds everything the rest of warpis needs to know
-about it: its name and a one-line description (for ``--help``), its integer code for the
-kernels, its constraints on N, the numpy twins the theory uses (how a pattern splits its
-samples into independent blocks, a combiner's weights), whether it has an exact-variance
-form, and the convergence rate to expect.  Every other module reads these registries:
-estimator parsing, the kernel launch arguments, the theory's forms, verify's default
-estimators, study slopes, the scene loader's material table and the error messages that
-list valid names.
+Each axis is a :class:`Registry` of frozen descriptors, declared in the kernel module of
+its axis beside the Warp branch that implements it: ``PATTERNS`` in
+``kernels/patterns.py``, ``COMBINERS`` in ``kernels/estimators.py``, ``TECHNIQUES`` in
+``kernels/techniques.py``, ``MATERIALS`` in ``kernels/integrand.py``.  Adding an entry is
+one file: its descriptor, its ``wp.constant`` and its branch.  A descriptor holds
+everything the rest of warpis needs to know: its name and a one-line description (for
+``--help``), its integer code for the kernels, its constraints on N, the numpy twins the
+theory uses (how a pattern splits its samples into independent blocks, a combiner's
+weights), whether it has an exact-variance form, and the convergence rate to expect.
+Every other module reads the registries: estimator parsing, the kernel launch arguments,
+the theory's forms, verify's default estimators, study slopes, the scene loader's
+material table and the error messages that list valid names.
 
 Codes are dispatch tags.  The kernel modules define their ``wp.constant`` from them
 (``JITTERED = wp.constant(PATTERNS["jittered"].code)``), named ``entry.constant``, so a
 kernel branch and its registry entry cannot disagree (tests/test_vocabulary.py checks
 every entry).  A code never enters a random stream or a result; append new entries with
-the next free code anyway, so that existing codes never move.
-
-Adding an entry is one descriptor here, plus its constant and the branch that implements
-it in the kernel module of its axis (patterns.py, estimators.py, techniques.py,
-integrand.py); its tests come from looping over the registry.  An entry may leave out its
+the next free code anyway, so that existing codes never move.  An entry may leave out its
 theory (``blocks=None``, ``weights=None``, ``inverse_pdf_integral=None``, ``slope=None``):
 the predictions then say why a form is missing instead of failing.
 
-A technique can also come from outside warpis: ``warpis.register_technique`` appends an
-entry (next free code, no theory) for a user's Warp ``sample``/``pdf`` pair, and the kernels
-that dispatch on technique codes are rebuilt for the registered set (techniques.py).
+Techniques and patterns can also come from outside warpis (:class:`UserEntries`):
+``warpis.register_technique`` and ``warpis.register_pattern`` append an entry (next free
+code, no theory) for a user's Warp functions, and the kernels that dispatch on those
+codes are rebuilt for the registered set.
 """
 
 from __future__ import annotations
@@ -31,9 +32,10 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Iterator, MutableMapping
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Any, Generic, NamedTuple, TypeVar
 
 import numpy as np
+import warp as wp
 
 from .errors import WarpisError
 
@@ -127,6 +129,55 @@ class Registry(MutableMapping[str, E], Generic[E]):
         return "\n".join(f"  {e.name:<20} {e.description}" for e in self._entries.values())
 
 
+class UserEntry(NamedTuple):
+    """An entry registered from Python: its name, its code and the user's Warp functions."""
+
+    name: str
+    code: int
+    functions: tuple[Any, ...]  # @wp.func each, in the order the axis's dispatch takes them
+
+
+class UserEntries:
+    """The entries of one registry that came from a user's Warp functions
+    (``register_technique``, ``register_pattern``): their checks, codes and removal."""
+
+    def __init__(self, registry: Registry[Any], how: str):
+        self.registry, self.how = registry, how  # how: the function that adds them, for messages
+        self._added: dict[str, UserEntry] = {}
+
+    def next_code(self, name: str, functions: dict[str, Any]) -> int:
+        """The code for a new entry ``name`` made of ``functions`` (role → function), or a
+        one-line WarpisError: not Warp functions, a taken name, or one an estimator spec
+        cannot spell."""
+        axis = self.registry.axis
+        if not all(isinstance(f, wp.Function) for f in functions.values()):
+            kind = "@wp.func functions" if len(functions) > 1 else "a @wp.func function"
+            raise WarpisError(f"{axis} {name!r}: {' and '.join(functions)} must be {kind}")
+        if name in self.registry:
+            raise WarpisError(f"{axis} {name!r} is already registered")
+        if not name or any(c in name for c in ":+ "):
+            raise WarpisError(f"{axis} {name!r}: a name must be non-empty, without ':', '+' or spaces")
+        return max(e.code for e in self.registry.values()) + 1
+
+    def add(self, entry: E, functions: tuple[Any, ...]) -> E:
+        self.registry[entry.name] = entry
+        self._added[entry.name] = UserEntry(entry.name, entry.code, functions)
+        return entry
+
+    def remove(self, name: str) -> None:
+        if name not in self._added:
+            raise WarpisError(f"{self.registry.axis} {name!r} was not added by {self.how}")
+        del self._added[name]
+        if name in self.registry:
+            del self.registry[name]
+
+    def active(self) -> tuple[UserEntry, ...]:
+        """The user entries still in the registry, in registration order (hashable: it keys
+        the kernels built for them)."""
+        return tuple(u for u in self._added.values()
+                     if u.name in self.registry and self.registry[u.name].code == u.code)
+
+
 # --------------------------------------------------------------------------- patterns
 
 
@@ -180,35 +231,6 @@ class Pattern(Entry):
         return None
 
 
-def _whole_square(m: int) -> Blocks:
-    return Blocks(1, m, (1, 1), False)
-
-
-def _pairs_on_square(m: int) -> Blocks:
-    return Blocks(1, m // 2, (1, 1), True)
-
-
-def _cells(m: int) -> Blocks:
-    return Blocks(m, 1, grid_shape(m), False)
-
-
-def _pairs_of_cells(m: int) -> Blocks:
-    """Cell i < m/2 and its mirror m−1−i form one block (see patterns.pattern_point)."""
-    return Blocks(m // 2, 1, grid_shape(m), True)
-
-
-PATTERNS: Registry[Pattern] = Registry("pattern", [
-    Pattern(name="independent", code=0, description="uniform independent points", blocks=_whole_square,
-            slope=IID_SLOPE),
-    Pattern(name="jittered", code=1, description="one uniform point per cell of a rows × cols = m grid, as square "
-                                                 "as m allows",
-            grid=True, blocks=_cells, slope=STRATIFIED_SLOPE),
-    Pattern(name="antithetic", code=2, description="pairs u and (1,1) − u", paired=True, blocks=_pairs_on_square,
-            slope=IID_SLOPE),
-    Pattern(name="jittered-antithetic", code=3, description="jittered points in half the cells, reflected through "
-                                                            "the centre into the mirrored cells",
-            paired=True, grid=True, blocks=_pairs_of_cells, slope=STRATIFIED_SLOPE),
-])
 
 
 # --------------------------------------------------------------------------- combiners
@@ -218,21 +240,6 @@ PATTERNS: Registry[Pattern] = Registry("pattern", [
 # samples with f = 0 or g_k = 0).  Each mirrors its branch in estimators.stratified_trial.
 Weights = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
 
-
-def _importance_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
-    return f / pdf[:, k]
-
-
-def _unweighted(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
-    return f.copy()
-
-
-def _balance_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
-    return f * pdf.shape[1] / pdf.sum(axis=1)  # f/ḡ
-
-
-def _power_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
-    return f * pdf[:, k] / (pdf**2).sum(axis=1)  # w_k f/g_k, w_k = g_k²/Σ_j g_j²
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -256,22 +263,6 @@ class Combiner(Entry):
         return 1.0 / (m * techniques) if self.divides_by_n else 1.0 / m
 
 
-COMBINERS: Registry[Combiner] = Registry("combiner", [
-    Combiner(name="single", code=0, description="IS with one technique: (1/N) Σ f/g", several=False,
-             weights=_importance_weights),
-    Combiner(name="mixture", code=1, description="IS from the averaged pdf ḡ: a technique picked at random per "
-                                                 "sample, weight f/ḡ",
-             several=True, random_pick=True, weights=_balance_weights, verify_under=("independent", "jittered")),
-    Combiner(name="balance", code=2, description="multi-sample MIS, balance heuristic: N/N_g samples per "
-                                                 "technique, weight f/ḡ",
-             several=True, splits_n=True, divides_by_n=True, weights=_balance_weights),
-    Combiner(name="power", code=3, description="multi-sample MIS, power heuristic (β = 2): N/N_g samples per "
-                                               "technique",
-             several=True, splits_n=True, weights=_power_weights, verify_under=("independent", "jittered")),
-    Combiner(name="biased", code=4, description="the unweighted mean of f over samples of one technique: "
-                                                "converges to ∫ f g, not F",
-             several=False, unbiased=False, weights=_unweighted, verify_under=("independent",)),
-])
 
 
 def expected_slope(pattern: Pattern, combiner: Combiner) -> Slope | None:
@@ -295,66 +286,17 @@ class Technique(Entry):
     cost: float = 1.0  # relative CPU cost of one sample: ranks quadrature candidates (reference.py)
 
 
-TECHNIQUES: Registry[Technique] = Registry("technique", [
-    # ∫ 1/g dω is 2π · 2π for uniform; for cosine ∫ π/cos θ dω diverges (logarithmically)
-    # at the horizon; the lobe and the light techniques vanish on part of the hemisphere.
-    Technique(name="uniform", code=0, description="uniform over the receiver's hemisphere, 1/(2π)",
-              inverse_pdf_integral=4 * math.pi**2),
-    Technique(name="cosine", code=1, description="cosine-weighted hemisphere, cos θ/π",
-              inverse_pdf_integral=math.inf),
-    Technique(name="phong", code=2, description="the Phong lobe (e+1)/(2π) cos^e α about the view's mirror direction",
-              inverse_pdf_integral=math.inf),
-    # Costs measured on the bundled scenes: a light-solid-angle sample costs 1.5–2
-    # light-area or 4–7 phong samples.  A fixed table keeps references reproducible.
-    Technique(name="light-area", code=3, description="a uniform point on the emitters (triangle picked by area)",
-              light=True, inverse_pdf_integral=math.inf, cost=2.0),
-    Technique(name="light-power", code=4, description="a uniform point on an emitter triangle picked by "
-                                                      "radiance × area",
-              light=True, inverse_pdf_integral=math.inf, cost=2.0),
-    Technique(name="light-solid-angle", code=5, description="a uniform direction in a spherical triangle, picked by "
-                                                            "solid angle × radiance (Arvo 1995)",
-              light=True, inverse_pdf_integral=math.inf, cost=5.0),
-])
 
 
 # --------------------------------------------------------------------------- materials
-
-
-def _unit_rho(albedo: np.ndarray) -> np.ndarray:
-    return np.ones_like(albedo)
-
-
-def _albedo_over_pi(albedo: np.ndarray) -> np.ndarray:
-    return albedo / np.pi
 
 
 @dataclass(frozen=True, kw_only=True)
 class Material(Entry):
     """The BRDF ρ at a receiver (integrand.brdf) and how a scene file spells it."""
 
-    keys: tuple[str, ...] = ()  # TOML keys of its table besides "type" (scene.py parses each)
+    keys: tuple[str, ...] = ()  # TOML keys of its table besides "type" (scenes/toml_source.py parses each)
     required: tuple[str, ...] = ()  # those of ``keys`` that have no default
     diffuse: bool  # ρ is constant: Lambert's closed form × lambert_scale is exact where unoccluded
     lambert_scale: Callable[[np.ndarray], np.ndarray]  # albedo → the factor on Lambert's irradiance
     bsdf_technique: str  # the technique that samples its BRDF
-
-
-MATERIALS: Registry[Material] = Registry("material", [
-    Material(name="irradiance", code=0, description="ρ = 1: F is the irradiance", diffuse=True,
-             lambert_scale=_unit_rho, bsdf_technique="cosine"),
-    Material(name="lambert", code=1, description="diffuse, ρ = albedo/π", keys=("albedo",), diffuse=True,
-             lambert_scale=_albedo_over_pi, bsdf_technique="cosine"),
-    # A Phong lobe is normalised so that ∫ ρ cos θ dω ≈ albedo: albedo/π × Lambert's value
-    # gives F's scale (reference.py's floor), though not F.
-    Material(name="phong", code=2, description="energy-normalised Phong lobe albedo·(e+2)/(2π)·cos^e α about the "
-                                               "view's mirror direction",
-             keys=("albedo", "exponent", "view"), required=("exponent", "view"), diffuse=False,
-             lambert_scale=_albedo_over_pi, bsdf_technique="phong"),
-])
-
-
-def estimator_help() -> str:
-    """The axes of an estimator spec, PATTERN:COMBINER:TECH[+TECH...], a line per entry
-    (for ``--help``)."""
-    return "\n".join(f"{axis} ({part}):\n{registry.help()}" for axis, part, registry in (
-        ("patterns", "PATTERN", PATTERNS), ("combiners", "COMBINER", COMBINERS), ("techniques", "TECH", TECHNIQUES)))

@@ -95,7 +95,7 @@ def variance_interval(estimates: ArrayLike, axis: int = -1, level: float = 0.95)
     usual correction term, the mean of the residuals, subtracted again), so data with a
     large mean and a tiny spread (estimates ~1e3, variance ~1e-6) lose no precision.
     It is ``SampleMoments.of(estimates, axis).interval(level)``: the streaming path of
-    :func:`warpis.engine.run_moments` ends in the same formula.
+    :func:`warpis.kernels.engine.run_moments` ends in the same formula.
 
     Parameters
     ----------

@@ -1,46 +1,34 @@
-"""Scenes as plain data: geometry, emission and receivers in numpy, named by their content.
+"""A scene as plain data: geometry, emission and receivers in numpy, named by their content.
 
-A :class:`Scene` comes from one of two sources, and both pass the same checks
-(:func:`_assemble`) before anything reaches a device:
-
-* a scene file (TOML, :func:`load_scene`) listing meshes in any format trimesh reads,
-  each with an optional transform and an optional one-sided ``emission``, receivers
-  (explicit points or grids, in one or several groups) and the material at the
-  receivers (README.md, "Scene files");
-* arrays (:meth:`Scene.from_arrays`).
+Every scene source (a TOML scene file, :meth:`Scene.from_arrays`, any future importer)
+ends in :func:`_assemble`, the one gate that checks each array against the kernels'
+limits before anything reaches a device.  A :class:`Scene` holds read-only numpy arrays
+and the name of its Warp device, nothing else: it pickles, and :attr:`Scene.digest`
+names its content.  Its Warp side (mesh, BVH, structs, self-hit slabs, light table) is
+built by :func:`warpis.kernels.device.upload` once per (digest, device); ``scene.data``,
+``scene.receiver_data`` and ``scene.slab`` fetch it.
 
 Bad input raises :class:`~warpis.errors.WarpisError` with one line naming the file (or
-the scene) and the problem.  A Scene holds read-only numpy arrays and the name of its
-Warp device, nothing else: it pickles, and :attr:`Scene.digest` names its content.
-Its Warp side (mesh, BVH, structs, self-hit slabs, light table) is built by
-:func:`warpis.device.upload` once per (digest, device); ``scene.data``,
-``scene.receiver_data`` and ``scene.slab`` fetch it.
+the scene) and the problem.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
-import math
-import tomllib
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
-from . import limits
-from .device import SELF_HIT_SLAB, DeviceScene, ReceiverData, SceneData, check_device, upload
-from .errors import WarpisError, fail
-from .vocabulary import MATERIALS, Material
-
-__all__ = ["DIGEST_FIELDS", "SELF_HIT_SLAB", "DeviceScene", "ReceiverData", "Receivers", "Scene", "SceneData",
-           "bundled_scenes", "check_device", "load_scene", "read_toml", "resolve_scene_path", "upload"]
+from .. import limits
+from ..errors import WarpisError, fail
+from ..kernels.device import ReceiverData, SceneData, check_device, upload
+from ..kernels.integrand import MATERIALS
+from ..vocabulary import Material
 
 # Emitter triangles whose area is below this fraction of their longest edge squared are
 # needles: no float32 ray can hit them reliably nor can they be sampled with a finite pdf.
@@ -49,10 +37,11 @@ DEGENERATE_AREA = 1e-12
 # The arrays the digest hashes, in this order: every array a result depends on.  Names,
 # the description, the path, mesh names, the triangle → mesh index and receiver groups
 # only label things (warpis info, figures), so renaming or moving a file keeps the digest.
+
 DIGEST_FIELDS = ("vertices", "triangles", "emission", "receivers.positions", "receivers.normals",
                  "receivers.material", "receivers.albedo", "receivers.exponent", "receivers.view")
-_DIGEST_FORMAT = b"warpis scene digest 1\0"  # a new encoding below gets a new number
 
+_DIGEST_FORMAT = b"warpis scene digest 1\0"  # a new encoding below gets a new number
 
 def _freeze(obj: Any, names: Sequence[str]) -> None:
     """Replace the arrays ``names`` of a frozen dataclass by read-only views: the digest
@@ -62,9 +51,7 @@ def _freeze(obj: Any, names: Sequence[str]) -> None:
         view.flags.writeable = False
         object.__setattr__(obj, name, view)
 
-
 _RECEIVER_ARRAYS = ("positions", "normals", "material", "albedo", "exponent", "view", "group")
-
 
 @dataclass(frozen=True, eq=False)
 class Receivers:
@@ -72,7 +59,7 @@ class Receivers:
 
     positions: np.ndarray  # (R, 3) float64
     normals: np.ndarray  # (R, 3) float64, unit
-    material: np.ndarray  # (R,) int32, vocabulary.MATERIALS code
+    material: np.ndarray  # (R,) int32, MATERIALS (kernels/integrand.py) code
     albedo: np.ndarray  # (R,) float64
     exponent: np.ndarray  # (R,) float64
     view: np.ndarray  # (R, 3) float64, unit
@@ -91,16 +78,14 @@ class Receivers:
         return len(self.positions)
 
     def material_of(self, index: int) -> Material:
-        """The material of receiver ``index`` (its entry in ``vocabulary.MATERIALS``)."""
+        """The material of receiver ``index`` (its entry in ``MATERIALS (kernels/integrand.py)``)."""
         return MATERIALS.by_code(self.material[index])
 
     def material_name(self, index: int) -> str:
         """The material type of receiver ``index`` as spelled in scene files."""
         return self.material_of(index).name
 
-
 _SCENE_ARRAYS = ("vertices", "triangles", "emission", "triangle_mesh")
-
 
 @dataclass(frozen=True, eq=False)
 class Scene:
@@ -154,7 +139,7 @@ class Scene:
             normals are normalised.
         material
             A material name (``"irradiance"``, ``"lambert"``, ``"phong"``) for every
-            receiver, or the ``vocabulary.MATERIALS`` code of each (one or (R,)).
+            receiver, or the ``MATERIALS (kernels/integrand.py)`` code of each (one or (R,)).
         albedo, exponent, view
             Material parameters, one for all or one per receiver; ``view`` (the direction
             towards the viewer, normalised) is (3,) or (R, 3).
@@ -207,7 +192,7 @@ class Scene:
 
     @property
     def data(self) -> SceneData:
-        """The SceneData struct on ``device`` (see :func:`warpis.device.upload`)."""
+        """The SceneData struct on ``device`` (see :func:`warpis.kernels.device.upload`)."""
         return upload(self).data
 
     @property
@@ -274,94 +259,10 @@ class Scene:
             "total_power": self.total_power,
         }
 
-
-# --------------------------------------------------------------------------- bundled
-
-
-def _bundled_root():
-    """The installed ``warpis.meshes`` package, or ``meshes/`` beside a source checkout."""
-    try:
-        return resources.files("warpis.meshes")
-    except ModuleNotFoundError:  # running from a checkout that was never pip-installed
-        return Path(__file__).resolve().parent.parent / "meshes"
-
-
-def bundled_scenes() -> list[str]:
-    """Names of the scenes shipped in ``meshes/``."""
-    root = _bundled_root()
-    return sorted(p.name for p in root.iterdir() if p.is_dir() and (p / "scene.toml").is_file())
-
-
-def resolve_scene_path(name_or_path: str | Path, base: Path | None = Path()) -> Path:
-    """A path to a scene file (or to a folder holding ``scene.toml``), else a bundled
-    scene's name → the scene file's path.
-
-    Relative paths are taken from ``base`` (the working directory by default; a study's
-    folder for its scenes); ``base=None`` accepts bundled names only.
-    """
-    text = str(name_or_path)
-    if base is not None:
-        candidate = base / text
-        if candidate.is_file():
-            return candidate
-        if candidate.is_dir() and (candidate / "scene.toml").is_file():
-            return candidate / "scene.toml"
-    bundled = _bundled_root() / text / "scene.toml"
-    if "/" not in text and "\\" not in text and bundled.is_file():
-        return Path(str(bundled))
-    names = ", ".join(bundled_scenes())
-    where = text if base is None or base == Path() else base / text
-    raise fail(where, f"no such scene file or bundled scene (bundled: {names})")
-
-
-# --------------------------------------------------------------------------- TOML checks
-
-
-def _check_keys(table: dict, allowed: set[str], where: str, file: Path) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise fail(file, f"unknown key {unknown[0]!r} in {where} (allowed: {', '.join(sorted(allowed))})")
-
-
-def _require(table: dict, key: str, where: str, file: Path) -> Any:
-    if key not in table:
-        raise fail(file, f"missing key {key!r} in {where}")
-    return table[key]
-
-
-def _number(value: Any, what: str, file: Path) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise fail(file, f"{what} must be a number, got {value!r}")
-    if not math.isfinite(value):
-        raise fail(file, f"{what} must be finite, got {value!r}")
-    return float(value)
-
-
-def _vector(value: Any, what: str, file: Path, length: int = 3) -> np.ndarray:
-    if not isinstance(value, list) or len(value) != length:
-        raise fail(file, f"{what} must be a list of {length} numbers, got {value!r}")
-    return np.array([_number(v, what, file) for v in value], dtype=np.float64)
-
-
-def _vectors(value: Any, what: str, file: Path) -> np.ndarray:
-    if not isinstance(value, list) or not value:
-        raise fail(file, f"{what} must be a non-empty list of [x, y, z] points")
-    return np.array([_vector(v, what, file) for v in value], dtype=np.float64).reshape(-1, 3)
-
-
-def _float32(value: float, what: str, file: Path) -> float:
-    """A value >= 0 in the float32 kernels' range (see limits.float32_value)."""
-    try:
-        return limits.float32_value(value, what)
-    except WarpisError as exc:
-        raise fail(file, str(exc)) from None
-
-
 def _coordinates(points: np.ndarray, what: str, where: object) -> np.ndarray:
     """Points whose coordinates float32 kernels can hold and square (limits.coordinates)."""
     _within(where, limits.coordinates, points, what)
     return points
-
 
 def _unit(v: np.ndarray, what: str, where: object) -> np.ndarray:
     norms = np.linalg.norm(v, axis=-1, keepdims=True)
@@ -369,160 +270,11 @@ def _unit(v: np.ndarray, what: str, where: object) -> np.ndarray:
         raise fail(where, f"{what} has zero length")
     return v / norms
 
-
-# --------------------------------------------------------------------------- meshes
-
-
-def rotation_matrix(axis: np.ndarray, degrees: float) -> np.ndarray:
-    """Right-handed rotation by ``degrees`` about ``axis`` (Rodrigues' formula)."""
-    k = axis / np.linalg.norm(axis)
-    a = math.radians(degrees)
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(a) * kx + (1 - math.cos(a)) * kx @ kx
-
-
-def _transform(spec: Any, where: str, file: Path) -> np.ndarray:
-    """A [[mesh]] transform table → 4×4 matrix: scale, then rotate, then translate."""
-    if not isinstance(spec, dict):
-        raise fail(file, f"{where}.transform must be a table")
-    _check_keys(spec, {"translate", "scale", "rotate"}, f"{where}.transform", file)
-    scale = spec.get("scale", 1.0)
-    if isinstance(scale, list):
-        s = _vector(scale, f"{where}.transform.scale", file)
-    else:
-        s = np.full(3, _number(scale, f"{where}.transform.scale", file))
-    if np.any(s == 0):
-        raise fail(file, f"{where}.transform.scale must not be zero")
-    r = np.eye(3)
-    if "rotate" in spec:
-        rot = spec["rotate"]
-        if not isinstance(rot, dict):
-            raise fail(file, f"{where}.transform.rotate must be a table with axis and degrees")
-        _check_keys(rot, {"axis", "degrees"}, f"{where}.transform.rotate", file)
-        axis = _vector(_require(rot, "axis", f"{where}.transform.rotate", file), f"{where}.transform.rotate.axis", file)
-        _unit(axis, f"{where}.transform.rotate.axis", file)
-        degrees = _number(_require(rot, "degrees", f"{where}.transform.rotate", file), f"{where}.transform.rotate.degrees", file)
-        r = rotation_matrix(axis, degrees)
-    t = _vector(spec.get("translate", [0, 0, 0]), f"{where}.transform.translate", file)
-    m = np.eye(4)
-    m[:3, :3] = r @ np.diag(s)
-    m[:3, 3] = t
-    return m
-
-
-# Text formats whose loaders decode the file: trimesh guesses a non-UTF-8 encoding with
-# the optional charset_normalizer, so warpis decodes them itself (UTF-8, else Latin-1,
-# which accepts any byte; only comments and names can hold such bytes).
-_TEXT_FORMATS = {".obj", ".off"}
-
-
-def _trimesh_load(path: Path) -> Any:
-    if path.suffix.lower() not in _TEXT_FORMATS:
-        return trimesh.load(str(path), force="mesh", process=False)
-    raw = path.read_bytes()
-    try:
-        raw.decode("utf-8")
-    except UnicodeDecodeError:
-        raw = raw.decode("latin-1").encode("utf-8")
-    return trimesh.load(io.BytesIO(raw), file_type=path.suffix[1:].lower(), force="mesh", process=False)
-
-
-def _read_mesh(path: Path, scene_file: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and triangles of a mesh file, exactly as written (no vertex merging)."""
-    if not path.is_file():
-        raise fail(path, f"mesh file not found (named in {scene_file})")
-    try:
-        loaded = _trimesh_load(path)
-    except OSError as exc:
-        raise fail(path, f"cannot read: {exc.strerror or exc}") from None
-    except Exception as exc:  # trimesh raises many types for unparsable files
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise fail(path, f"trimesh cannot read this mesh: {reason}") from None
-    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
-    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
-    if faces.ndim != 2 or len(faces) == 0:
-        raise fail(path, "mesh has no triangles (or trimesh cannot read it as a triangle mesh)")
-    if not np.all(np.isfinite(vertices)):
-        bad = int(np.argmax(~np.all(np.isfinite(vertices), axis=1)))
-        raise fail(path, f"vertex {bad} is NaN or infinite")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise fail(path, "a face refers to a vertex that does not exist")
-    return vertices, faces
-
-
 def _triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     v = vertices[triangles]
     return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
 
-# --------------------------------------------------------------------------- receivers & materials
-
-
-def _float32_number(value: Any, what: str, file: Path) -> float:
-    return _float32(_number(value, what, file), what, file)
-
-
-def _unit_vector(value: Any, what: str, file: Path) -> np.ndarray:
-    return _unit(_vector(value, what, file), what, file)
-
-
-# The keys a material table may hold (each material lists its own in vocabulary.MATERIALS):
-# how each is read, and its value for a material without it (or that leaves it out).
-MATERIAL_PARAMETERS: dict[str, tuple[Callable[[Any, str, Path], Any], Any]] = {
-    "albedo": (_float32_number, 1.0),
-    "exponent": (_float32_number, 1.0),
-    "view": (_unit_vector, np.array([0.0, 0.0, 1.0])),
-}
-
-
-def _material(spec: Any, where: str, file: Path) -> dict[str, Any]:
-    if not isinstance(spec, dict):
-        raise fail(file, f"{where} must be a table")
-    kind = _require(spec, "type", where, file)
-    if kind not in MATERIALS:
-        raise fail(file, f"{where}.type {kind!r} is not one of {', '.join(MATERIALS)}")
-    material = MATERIALS[kind]
-    _check_keys(spec, {"type", *material.keys}, where, file)
-    out: dict[str, Any] = {"code": material.code}
-    for key, (parse, default) in MATERIAL_PARAMETERS.items():
-        if key in material.required:
-            out[key] = parse(_require(spec, key, where, file), f"{where}.{key}", file)
-        elif key in spec:
-            out[key] = parse(spec[key], f"{where}.{key}", file)
-        else:
-            out[key] = default
-    return out
-
-
-def _grid_points(spec: Any, where: str, file: Path) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
-    if not isinstance(spec, dict):
-        raise fail(file, f"{where}.grid must be a table")
-    _check_keys(spec, {"origin", "edge_u", "edge_v", "resolution"}, f"{where}.grid", file)
-    origin = _vector(_require(spec, "origin", f"{where}.grid", file), f"{where}.grid.origin", file)
-    eu = _vector(_require(spec, "edge_u", f"{where}.grid", file), f"{where}.grid.edge_u", file)
-    ev = _vector(_require(spec, "edge_v", f"{where}.grid", file), f"{where}.grid.edge_v", file)
-    res = _require(spec, "resolution", f"{where}.grid", file)
-    if (not isinstance(res, list) or len(res) != 2
-            or not all(isinstance(r, int) and not isinstance(r, bool) for r in res)):
-        raise fail(file, f"{where}.grid.resolution must be two integers, got {res!r}")
-    nu, nv = res
-    if nu < 1 or nv < 1:
-        raise fail(file, f"{where}.grid.resolution must be at least [1, 1], got {res!r}")
-    _receiver_count(nu * nv, f"{where}.grid.resolution {res!r}", file)
-    cross = np.cross(eu, ev)
-    # Relative to the edges' own lengths: a grid's size is the user's choice of units.
-    if not np.linalg.norm(cross) > 1e-12 * np.linalg.norm(eu) * np.linalg.norm(ev):
-        raise fail(file, f"{where}.grid edges are parallel or zero")
-    # Cell centres, row-major over (v, u) so that reshape(nv, nu) is an image.
-    su = (np.arange(nu) + 0.5) / nu
-    sv = (np.arange(nv) + 0.5) / nv
-    pts = origin + sv[:, None, None] * ev + su[None, :, None] * eu
-    return pts.reshape(-1, 3), (nv, nu), cross / np.linalg.norm(cross)
-
-
-# Bytes a receiver costs while a scene loads (float64 numpy arrays, their float32 Warp
-# copies, the slab and the light table's row headers), for the memory check up front.
 RECEIVER_BYTES = 256
-
 
 def _receiver_count(count: int, what: str, where: object) -> None:
     """Refuse up front a receiver count the kernels cannot index or memory cannot hold."""
@@ -530,135 +282,12 @@ def _receiver_count(count: int, what: str, where: object) -> None:
         raise fail(where, f"{what}: {count:,} receivers, more than the {limits.MAX_COUNT:,} the kernels can index")
     _within(where, limits.memory, count * RECEIVER_BYTES, f"{what} ({count:,} receivers)")
 
-
-def _receiver_group(spec: Any, where: str, file: Path, default_material: dict | None) -> dict[str, Any]:
-    if not isinstance(spec, dict):
-        raise fail(file, f"{where} must be a table")
-    _check_keys(spec, {"points", "grid", "normal", "normals", "name", "material"}, where, file)
-    if ("points" in spec) == ("grid" in spec):
-        raise fail(file, f"{where} needs exactly one of 'points' or 'grid'")
-    grid_shape = None
-    if "points" in spec:
-        points = _vectors(spec["points"], f"{where}.points", file)
-        default_normal = None
-    else:
-        points, grid_shape, default_normal = _grid_points(spec["grid"], where, file)
-    if "normal" in spec and "normals" in spec:
-        raise fail(file, f"{where} has both 'normal' and 'normals'")
-    if "normals" in spec:
-        normals = _vectors(spec["normals"], f"{where}.normals", file)
-        if len(normals) != len(points):
-            raise fail(file, f"{where}.normals has {len(normals)} entries for {len(points)} points")
-    elif "normal" in spec:
-        normals = np.tile(_vector(spec["normal"], f"{where}.normal", file), (len(points), 1))
-    elif default_normal is not None:
-        normals = np.tile(default_normal, (len(points), 1))
-    else:
-        raise fail(file, f"{where} needs 'normal' or 'normals'")
-    normals = _unit(normals, f"{where} normal", file)
-    if "material" in spec:
-        material = _material(spec["material"], f"{where}.material", file)
-    elif default_material is not None:
-        material = default_material
-    else:
-        raise fail(file, f"{where} has no material and the scene has no [material] table")
-    name = spec.get("name", where)
-    if not isinstance(name, str):
-        raise fail(file, f"{where}.name must be a string")
-    _coordinates(points, f"{where} receivers", file)
-    return {"points": points, "normals": normals, "material": material, "name": name, "grid": grid_shape}
-
-
-def _receivers(doc: dict, file: Path) -> Receivers:
-    default = _material(doc["material"], "[material]", file) if "material" in doc else None
-    spec = _require(doc, "receivers", "the scene", file)
-    groups_spec = spec if isinstance(spec, list) else [spec]
-    if not groups_spec:
-        raise fail(file, "[[receivers]] is empty")
-    groups = [
-        _receiver_group(g, "[receivers]" if len(groups_spec) == 1 else f"[[receivers]] #{i + 1}", file, default)
-        for i, g in enumerate(groups_spec)
-    ]
-    count = [len(g["points"]) for g in groups]
-    _receiver_count(sum(count), "[[receivers]]", file)
-    return Receivers(
-        positions=np.vstack([g["points"] for g in groups]),
-        normals=np.vstack([g["normals"] for g in groups]),
-        material=np.concatenate([np.full(c, g["material"]["code"], np.int32) for g, c in zip(groups, count)]),
-        albedo=np.concatenate([np.full(c, g["material"]["albedo"]) for g, c in zip(groups, count)]),
-        exponent=np.concatenate([np.full(c, g["material"]["exponent"]) for g, c in zip(groups, count)]),
-        view=np.vstack([np.tile(g["material"]["view"], (c, 1)) for g, c in zip(groups, count)]),
-        group=np.concatenate([np.full(c, i, np.int32) for i, c in enumerate(count)]),
-        group_names=[g["name"] for g in groups],
-        grid_shape=groups[0]["grid"] if len(groups) == 1 else None,
-    )
-
-
-# --------------------------------------------------------------------------- reading files
-
-
-def read_toml(file: Path) -> dict:
-    """Parse a TOML file (scene or study); any unreadable file is a one-line WarpisError."""
-    try:
-        with open(file, "rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise fail(file, f"not valid TOML: {exc}") from None
-    except UnicodeDecodeError as exc:
-        raise fail(file, f"not valid TOML: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
-    except RecursionError:
-        raise fail(file, "not valid TOML: nested too deeply") from None
-    except IsADirectoryError:
-        raise fail(file, "is a directory, not a TOML file") from None
-    except OSError as exc:
-        raise fail(file, f"cannot read: {exc.strerror}") from None
-
-
-def _meshes(doc: dict, file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    entries = _require(doc, "mesh", "the scene", file)
-    if not isinstance(entries, list) or not entries:
-        raise fail(file, "the scene needs at least one [[mesh]]")
-    vertices, triangles, emission, owner, paths = [], [], [], [], []
-    offset = 0
-    for i, entry in enumerate(entries):
-        where = f"[[mesh]] #{i + 1}"
-        if not isinstance(entry, dict):
-            raise fail(file, f"{where} must be a table")
-        _check_keys(entry, {"path", "emission", "transform", "name"}, where, file)
-        rel = _require(entry, "path", where, file)
-        if not isinstance(rel, str):
-            raise fail(file, f"{where}.path must be a string")
-        radiance = entry.get("emission", 0.0)
-        if isinstance(radiance, bool) or not isinstance(radiance, (int, float)):
-            raise fail(file, f"{where} ({rel}): emission must be a finite number >= 0, got {radiance!r}")
-        radiance = _float32(float(radiance), f"{where} ({rel}): emission", file)
-        if not isinstance(entry.get("name", ""), str):
-            raise fail(file, f"{where}.name must be a string, got {entry['name']!r}")
-        v, f = _read_mesh((file.parent / rel), file)
-        if "transform" in entry:
-            m = _transform(entry["transform"], where, file)
-            with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
-                v = v @ m[:3, :3].T + m[:3, 3]
-        _coordinates(v, f"{where} ({rel}) after its transform", file)
-        vertices.append(v)
-        triangles.append(f + offset)
-        emission.append(np.full(len(f), float(radiance)))
-        owner.append(np.full(len(f), i, np.int32))
-        paths.append(rel)
-        offset += len(v)
-    return np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission), np.concatenate(owner), paths
-
-
-# --------------------------------------------------------------------------- arrays
-
-
 def _within(where: object, check: Callable[..., Any], *args: Any) -> None:
     """Run a :mod:`warpis.limits` check; its one-line error is prefixed with ``where``."""
     try:
         check(*args)
     except WarpisError as exc:
         raise fail(where, str(exc)) from None
-
 
 def _numbers(value: Any, what: str, where: object, integer: bool = False) -> np.ndarray:
     """``value`` as a new float64 (or int64) array, never the caller's memory; non-numbers,
@@ -671,7 +300,6 @@ def _numbers(value: Any, what: str, where: object, integer: bool = False) -> np.
         raise fail(where, f"{what}: expected {'integers' if integer else 'real numbers'}, got dtype {a.dtype}")
     return a.astype(np.int64 if integer else np.float64)
 
-
 def _array(value: Any, what: str, where: object, shape: tuple[int | None, ...], spelled: str,
            integer: bool = False) -> np.ndarray:
     """An array of exactly ``shape`` (None: any length >= 1), written ``spelled`` in errors."""
@@ -679,7 +307,6 @@ def _array(value: Any, what: str, where: object, shape: tuple[int | None, ...], 
     if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)) or a.size == 0:
         raise fail(where, f"{what}: expected shape {spelled}, got {a.shape}")
     return a
-
 
 def _per_receiver(value: Any, what: str, where: object, count: int, width: int | None = None,
                   integer: bool = False) -> np.ndarray:
@@ -691,7 +318,6 @@ def _per_receiver(value: Any, what: str, where: object, count: int, width: int |
     if a.shape != (count, *one):
         raise fail(where, f"{what}: expected shape {one} or {(count, *one)} (one per receiver), got {a.shape}")
     return a
-
 
 def _directions(v: np.ndarray, what: str, where: object) -> np.ndarray:
     """Refuse a NaN, infinite, zero or overflowing direction (normals, views)."""
@@ -706,7 +332,6 @@ def _directions(v: np.ndarray, what: str, where: object) -> np.ndarray:
         raise fail(where, f"{what}: entry {int(np.argmin(np.isfinite(norms)))} is too long to normalise")
     return v
 
-
 def _material_codes(material: Any, count: int, where: object) -> np.ndarray:
     """A material name for every receiver, or codes (one or one per receiver) → (R,) int32."""
     if isinstance(material, str):
@@ -717,7 +342,6 @@ def _material_codes(material: Any, count: int, where: object) -> np.ndarray:
     _check_codes(codes, where)
     return codes.astype(np.int32)
 
-
 def _check_codes(codes: np.ndarray, where: object) -> None:
     valid = [m.code for m in MATERIALS.values()]
     bad = ~np.isin(codes, valid)
@@ -725,7 +349,6 @@ def _check_codes(codes: np.ndarray, where: object) -> None:
         i = int(np.argmax(bad))
         names = ", ".join(f"{m.code} {m.name}" for m in MATERIALS.values())
         raise fail(where, f"material: code {codes[i]} of receiver {i} is not a material (valid: {names})")
-
 
 def _grid_shape(value: Any, count: int, where: object) -> tuple[int, int] | None:
     """None, or (rows, cols) of positive integers with rows × cols = the receiver count."""
@@ -737,7 +360,6 @@ def _grid_shape(value: Any, count: int, where: object) -> tuple[int, int] | None
         raise fail(where, f"grid_shape: expected (rows, cols) with rows × cols = {count} receivers, got {value!r}")
     return int(shape[0]), int(shape[1])
 
-
 def _check_groups(group: np.ndarray, names: Any, where: object) -> None:
     if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
         raise fail(where, f"group_names: expected a non-empty list of strings, got {names!r}")
@@ -745,7 +367,6 @@ def _check_groups(group: np.ndarray, names: Any, where: object) -> None:
     if bad.any():
         i = int(np.argmax(bad))
         raise fail(where, f"group: receiver {i} is in group {group[i]}, but there are {len(names)} group name(s)")
-
 
 def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: Any, albedo: Any, exponent: Any,
                            view: Any, group: Any, group_names: Sequence[str] | None,
@@ -768,7 +389,6 @@ def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: A
         grid_shape=_grid_shape(grid_shape, count, where),
     )
 
-
 def _check_receivers(rx: Receivers, where: object) -> None:
     """Every receiver array: shapes, the kernels' limits, directions, material codes, groups."""
     count = len(rx.positions)
@@ -788,7 +408,6 @@ def _check_receivers(rx: Receivers, where: object) -> None:
     _check_groups(rx.group, rx.group_names, where)
     _grid_shape(rx.grid_shape, count, where)
 
-
 def _geometry(vertices: Any, triangles: Any, where: object) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) float64 vertices the kernels can hold and (T, 3) int32 indices into them."""
     v = _array(vertices, "vertices", where, (None, 3), "(V, 3)")
@@ -802,7 +421,6 @@ def _geometry(vertices: Any, triangles: Any, where: object) -> tuple[np.ndarray,
         raise fail(where, f"triangles: triangle {i} refers to vertex {t[i][bad[i]][0]}, which does not exist "
                           f"(there are {len(v)})")
     return v, t.astype(np.int32)
-
 
 def _owners(triangle_mesh: Any, mesh_names: Any, count: int, where: object) -> tuple[np.ndarray, list[str]]:
     """The mesh index of each triangle (default 0) and the mesh names it indexes."""
@@ -818,7 +436,6 @@ def _owners(triangle_mesh: Any, mesh_names: Any, count: int, where: object) -> t
         raise fail(where, f"triangle_mesh: triangle {i} is in mesh {owner[i]}, but there are {len(names)} mesh name(s)")
     return owner.astype(np.int32), names
 
-
 def _degenerate(vertices: np.ndarray, triangles: np.ndarray, areas: np.ndarray) -> np.ndarray:
     """Needle or point triangles: area at most DEGENERATE_AREA × longest edge², or an
     area float32 cannot hold (below its smallest normal number)."""
@@ -826,7 +443,6 @@ def _degenerate(vertices: np.ndarray, triangles: np.ndarray, areas: np.ndarray) 
     edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 1], v[:, 0] - v[:, 2]], axis=1)
     longest = (edges**2).sum(axis=2).max(axis=1)
     return (areas <= DEGENERATE_AREA * longest) | (areas < limits.FLOAT32_TINY)
-
 
 def _drop_needles(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray, owner: np.ndarray,
                   mesh_where: Callable[[int], object]) -> np.ndarray:
@@ -849,7 +465,6 @@ def _drop_needles(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndar
             emission[degenerate] = 0.0
     return emission
 
-
 def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, name: str, vertices: Any,
               triangles: Any, emission: Any, receivers: Receivers, triangle_mesh: Any, mesh_names: Any,
               description: str, device: str, path: Path | None = None) -> Scene:
@@ -868,43 +483,3 @@ def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, 
         raise fail(where, f"the scene has no emitter ({hint})")
     return Scene(name=name, vertices=v, triangles=t, emission=e, receivers=receivers, triangle_mesh=owner,
                  mesh_names=names, description=description, path=path, device=device)
-
-
-# --------------------------------------------------------------------------- scene files
-
-
-def load_scene(scene: str | Path, device: str = "cpu") -> Scene:
-    """Load and validate a scene file (or a bundled scene by name).
-
-    Parameters
-    ----------
-    scene
-        A bundled scene's name (see :func:`bundled_scenes`) or the path of a scene TOML.
-    device
-        Warp device the scene's kernels run on: ``"cpu"`` or ``"cuda"``/``"cuda:N"``.
-
-    Returns
-    -------
-    Scene
-        Plain numpy data; ``scene.data`` and ``scene.receiver_data`` upload it on first use.
-
-    Raises
-    ------
-    WarpisError
-        One line naming the file and the problem, for any invalid input.
-    """
-    check_device(device)
-    file = resolve_scene_path(scene)
-    doc = read_toml(file)
-    _check_keys(doc, {"name", "description", "mesh", "receivers", "material"}, "the top level", file)
-    name = doc.get("name", file.parent.name if file.name == "scene.toml" else file.stem)
-    if not isinstance(name, str):
-        raise fail(file, "name must be a string")
-    if not isinstance(doc.get("description", ""), str):
-        raise fail(file, "description must be a string")
-    vertices, triangles, emission, owner, paths = _meshes(doc, file)
-    receivers = _receivers(doc, file)
-    return _assemble(file, lambda m: file.parent / paths[m], "give some [[mesh]] an emission > 0", name=name,
-                     vertices=vertices, triangles=triangles, emission=emission, receivers=receivers,
-                     triangle_mesh=owner, mesh_names=paths, description=str(doc.get("description", "")),
-                     device=str(device), path=file)

@@ -30,13 +30,13 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtri
 
-from .engine import run_trials
-from .errors import WarpisError
-from .estimators import Estimator
-from .reference import Reference, reference
-from .scene import Scene
-from .stats import variance_interval
-from .theory import BOUNDS, Estimate, Moments, moments, predictions
+from ..analysis.reference import Reference, reference
+from ..analysis.stats import variance_interval
+from ..analysis.theory import BOUNDS, Estimate, Moments, moments, predictions
+from ..errors import WarpisError
+from ..kernels.engine import run_trials
+from ..kernels.estimators import Estimator
+from ..scenes import Scene
 
 LEVEL = 0.95  # two-sided level of every interval and every "inside"
 Z95 = float(ndtri(0.5 * (1.0 + LEVEL)))  # 1.959963984540054, the quantile stats.variance_interval uses

@@ -1,12 +1,12 @@
 """A scene's Warp side: the mesh, BVH, structs, self-hit slabs and everything derived on a device.
 
-A :class:`~warpis.scene.Scene` is plain numpy data named by its content digest; the
+A :class:`~warpis.scenes.Scene` is plain numpy data named by its content digest; the
 kernels need Warp objects built from it on one device.  :func:`upload` builds them once
 per (digest, device) into a :class:`DeviceScene` and keeps it in one process-wide cache,
 so two Scene objects with the same content (a scene loaded twice, one unpickled in
 another process, the same file under another path) share one upload, and nothing is ever
 attached to a Scene.  What is derived from the Warp side (the light table of
-:mod:`warpis.techniques`, theory's block variances) lives in the same entry
+:mod:`warpis.kernels.techniques`, theory's block variances) lives in the same entry
 (:meth:`DeviceScene.cached`).
 
 The cache keeps the :data:`DEVICE_CACHE_SIZE` most recently used entries.  A Warp struct
@@ -26,10 +26,10 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 import warp as wp
 
-from .errors import WarpisError
+from ..errors import WarpisError
 
 if TYPE_CHECKING:
-    from .scene import Scene
+    from ..scenes import Scene
 
 T = TypeVar("T")
 

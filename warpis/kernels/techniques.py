@@ -1,6 +1,6 @@
 """Sampling techniques: ``sample(u) → (ω, pdf)`` and ``pdf(ω)`` pairs, as Warp functions.
 
-Techniques (entries of ``vocabulary.TECHNIQUES``):
+Techniques (entries of ``TECHNIQUES`` (below)):
 
 ``uniform``            uniform over the receiver's hemisphere, 1/(2π).
 ``cosine``             cosine-weighted hemisphere, cos θ/π (BSDF sampling for irradiance
@@ -35,28 +35,44 @@ with no user technique they are the built-in kernels themselves.
 from __future__ import annotations
 
 import functools
-from typing import Any, NamedTuple
+import math
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import warp as wp
 
+from ..vocabulary import Registry, Technique, UserEntries, UserEntry
 from .device import DeviceScene, ReceiverData, SceneData, upload
 from .integrand import ShadingPoint, shading_point
-from .scene import Scene
-from .errors import WarpisError
-from .vocabulary import TECHNIQUES, Technique
-from .warps import (
-    cosine_hemisphere_pdf,
-    phong_lobe_pdf,
-    square_to_cosine_hemisphere,
-    square_to_phong_lobe,
-    square_to_spherical_triangle,
-    square_to_triangle,
-    square_to_uniform_hemisphere,
-    to_world,
-    triangle_solid_angle,
-    uniform_hemisphere_pdf,
-)
+from .warps import (cosine_hemisphere_pdf, phong_lobe_pdf, square_to_cosine_hemisphere, square_to_phong_lobe,
+                    square_to_spherical_triangle, square_to_triangle, square_to_uniform_hemisphere, to_world,
+                    triangle_solid_angle, uniform_hemisphere_pdf)
+
+if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
+    from ..scenes import Scene
+
+
+TECHNIQUES: Registry[Technique] = Registry("technique", [
+    # ∫ 1/g dω is 2π · 2π for uniform; for cosine ∫ π/cos θ dω diverges (logarithmically)
+    # at the horizon; the lobe and the light techniques vanish on part of the hemisphere.
+    Technique(name="uniform", code=0, description="uniform over the receiver's hemisphere, 1/(2π)",
+              inverse_pdf_integral=4 * math.pi**2),
+    Technique(name="cosine", code=1, description="cosine-weighted hemisphere, cos θ/π",
+              inverse_pdf_integral=math.inf),
+    Technique(name="phong", code=2, description="the Phong lobe (e+1)/(2π) cos^e α about the view's mirror direction",
+              inverse_pdf_integral=math.inf),
+    # Costs measured on the bundled scenes: a light-solid-angle sample costs 1.5–2
+    # light-area or 4–7 phong samples.  A fixed table keeps references reproducible.
+    Technique(name="light-area", code=3, description="a uniform point on the emitters (triangle picked by area)",
+              light=True, inverse_pdf_integral=math.inf, cost=2.0),
+    Technique(name="light-power", code=4, description="a uniform point on an emitter triangle picked by "
+                                                      "radiance × area",
+              light=True, inverse_pdf_integral=math.inf, cost=2.0),
+    Technique(name="light-solid-angle", code=5, description="a uniform direction in a spherical triangle, picked by "
+                                                            "solid angle × radiance (Arvo 1995)",
+              light=True, inverse_pdf_integral=math.inf, cost=5.0),
+])
+
 
 # The kernels' codes, from the registry.
 UNIFORM = wp.constant(TECHNIQUES["uniform"].code)
@@ -321,7 +337,7 @@ def _light_table_kernel(scene: SceneData, recv: ReceiverData, cdf: wp.array2d(dt
 
 def light_table(scene: Scene) -> LightTable:
     """The solid-angle selection table of every receiver of ``scene``, built once per
-    content and device (kept with its upload, :meth:`warpis.device.DeviceScene.cached`)."""
+    content and device (kept with its upload, :meth:`warpis.kernels.device.DeviceScene.cached`)."""
     dev = upload(scene)
     return dev.cached("light_table", lambda: _build_light_table(dev, len(scene.receivers), scene.emitter_count))
 
@@ -338,21 +354,12 @@ def _build_light_table(dev: DeviceScene, receivers: int, emitters: int) -> Light
 # --------------------------------------------------------------------------- user techniques
 
 
-class UserTechnique(NamedTuple):
-    """A technique registered from Python: its code and its two Warp functions."""
-
-    name: str
-    code: int
-    sample: Any  # @wp.func (sp: ShadingPoint, u: wp.vec2) -> wp.vec3 (zero vector: no sample)
-    pdf: Any  # @wp.func (sp: ShadingPoint, w: wp.vec3) -> float, solid-angle density
-
-
-_USER: dict[str, UserTechnique] = {}
+USER_TECHNIQUES = UserEntries(TECHNIQUES, "register_technique")  # functions: (sample, pdf)
 
 
 def register_technique(name: str, sample: Any, pdf: Any, *, description: str = "a user-defined technique",
                        light: bool = False, cost: float = 1.0) -> Technique:
-    """Add a technique written as a Warp ``sample``/``pdf`` pair to ``vocabulary.TECHNIQUES``.
+    """Add a technique written as a Warp ``sample``/``pdf`` pair to ``TECHNIQUES`` (below).
 
     ``sample(sp: ShadingPoint, u: wp.vec2) -> wp.vec3`` maps a primary sample to a unit
     direction (the zero vector for no sample); ``pdf(sp: ShadingPoint, w: wp.vec3) -> float``
@@ -360,32 +367,20 @@ def register_technique(name: str, sample: Any, pdf: Any, *, description: str = "
     gets the next free code and no theory (``inverse_pdf_integral=None``).  The kernels
     that dispatch on technique codes are rebuilt for the registered set (once per set).
     """
-    if not isinstance(sample, wp.Function) or not isinstance(pdf, wp.Function):
-        raise WarpisError(f"technique {name!r}: sample and pdf must be @wp.func functions")
-    if name in TECHNIQUES:
-        raise WarpisError(f"technique {name!r} is already registered")
-    if not name or any(c in name for c in ":+ "):
-        raise WarpisError(f"technique {name!r}: a name must be non-empty, without ':', '+' or spaces")
-    code = max(e.code for e in TECHNIQUES.values()) + 1
+    code = USER_TECHNIQUES.next_code(name, {"sample": sample, "pdf": pdf})
     entry = Technique(name=name, code=code, description=description, light=light,
                       inverse_pdf_integral=None, cost=cost)
-    TECHNIQUES[name] = entry
-    _USER[name] = UserTechnique(name, code, sample, pdf)
-    return entry
+    return USER_TECHNIQUES.add(entry, (sample, pdf))
 
 
 def unregister_technique(name: str) -> None:
     """Remove a technique added by :func:`register_technique`."""
-    if name not in _USER:
-        raise WarpisError(f"technique {name!r} was not added by register_technique")
-    del _USER[name]
-    if name in TECHNIQUES:
-        del TECHNIQUES[name]
+    USER_TECHNIQUES.remove(name)
 
 
-def user_techniques() -> tuple[UserTechnique, ...]:
+def user_techniques() -> tuple[UserEntry, ...]:
     """The registered user techniques still in the registry, in registration order."""
-    return tuple(t for t in _USER.values() if t.name in TECHNIQUES and TECHNIQUES[t.name].code == t.code)
+    return USER_TECHNIQUES.active()
 
 
 def _with_user_pdf(inner: Any, code: int, user_pdf: Any) -> Any:
@@ -410,18 +405,19 @@ def _with_user_sample(inner: Any, code: int, user_sample: Any) -> Any:
 
 
 @functools.lru_cache(maxsize=None)
-def dispatch(user: tuple[UserTechnique, ...]) -> tuple[Any, Any]:
+def dispatch(user: tuple[UserEntry, ...]) -> tuple[Any, Any]:
     """``(sample_direction, technique_pdf)`` that also know the user techniques ``user``
     (the built-in functions themselves when there are none)."""
     sample, pdf = sample_direction, technique_pdf
     for t in user:
-        sample = _with_user_sample(sample, t.code, t.sample)
-        pdf = _with_user_pdf(pdf, t.code, t.pdf)
+        user_sample, user_pdf = t.functions
+        sample = _with_user_sample(sample, t.code, user_sample)
+        pdf = _with_user_pdf(pdf, t.code, user_pdf)
     return sample, pdf
 
 
 @functools.lru_cache(maxsize=None)
-def sampler(user: tuple[UserTechnique, ...]) -> Any:
+def sampler(user: tuple[UserEntry, ...]) -> Any:
     """``sample_technique`` that also knows the user techniques ``user`` (itself when none)."""
     if not user:
         return sample_technique
@@ -462,7 +458,7 @@ _sample_kernel, _pdf_kernel = _make_numpy_kernels(sample_technique, technique_pd
 
 
 @functools.lru_cache(maxsize=None)
-def numpy_kernels(user: tuple[UserTechnique, ...]) -> tuple[Any, Any]:
+def numpy_kernels(user: tuple[UserEntry, ...]) -> tuple[Any, Any]:
     """``(_sample_kernel, _pdf_kernel)`` for the user techniques ``user`` (the built-in pair
     when there are none)."""
     if not user:

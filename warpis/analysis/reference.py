@@ -39,14 +39,15 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..errors import WarpisError
+from ..kernels.engine import run_trials, select_receivers
+from ..kernels.estimators import parse_estimator
+from ..kernels.integrand import MATERIALS
+from ..kernels.techniques import TECHNIQUES
+from ..limits import count as check_count
+from ..limits import seed as check_seed
+from ..scenes import Scene
 from .closed_form import irradiance_closed_form
-from .engine import run_trials, select_receivers
-from .errors import WarpisError
-from .estimators import parse_estimator
-from .limits import count as check_count
-from .limits import seed as check_seed
-from .scene import Scene
-from .vocabulary import MATERIALS, TECHNIQUES
 
 QUADRATURE_SAMPLES = 4096
 QUADRATURE_REPLICAS = 32

@@ -19,13 +19,41 @@ changes F by a second-order amount (docs/theory.md, "The integrand at a receiver
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import warp as wp
 
+from ..vocabulary import Material, Registry
 from .device import ReceiverData, SceneData, upload
-from .scene import Scene
-from .vocabulary import MATERIALS
 from .warps import INV_2PI, INV_PI
+
+if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
+    from ..scenes import Scene
+
+
+def _unit_rho(albedo: np.ndarray) -> np.ndarray:
+    return np.ones_like(albedo)
+
+
+def _albedo_over_pi(albedo: np.ndarray) -> np.ndarray:
+    return albedo / np.pi
+
+
+
+MATERIALS: Registry[Material] = Registry("material", [
+    Material(name="irradiance", code=0, description="ρ = 1: F is the irradiance", diffuse=True,
+             lambert_scale=_unit_rho, bsdf_technique="cosine"),
+    Material(name="lambert", code=1, description="diffuse, ρ = albedo/π", keys=("albedo",), diffuse=True,
+             lambert_scale=_albedo_over_pi, bsdf_technique="cosine"),
+    # A Phong lobe is normalised so that ∫ ρ cos θ dω ≈ albedo: albedo/π × Lambert's value
+    # gives F's scale (reference.py's floor), though not F.
+    Material(name="phong", code=2, description="energy-normalised Phong lobe albedo·(e+2)/(2π)·cos^e α about the "
+                                               "view's mirror direction",
+             keys=("albedo", "exponent", "view"), required=("exponent", "view"), diffuse=False,
+             lambert_scale=_albedo_over_pi, bsdf_technique="phong"),
+])
+
 
 # The kernels' material codes, from the registry (vocabulary.MATERIALS).
 IRRADIANCE = wp.constant(MATERIALS["irradiance"].code)

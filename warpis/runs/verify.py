@@ -1,7 +1,7 @@
 """``warpis verify``: measured variance beside every applicable prediction, cell by cell.
 
 Verify is a study of one scene with default estimators: each receiver × estimator × N
-*cell* is measured by :func:`warpis.cell.measure_cell`, the pipeline ``warpis study``
+*cell* is measured by :func:`warpis.runs.cell.measure_cell`, the pipeline ``warpis study``
 shares, which also holds the rules (a form is *inside* when
 |s² − V| ≤ 1.96·√(se(s²)² + se(V)²), a bound (eq17, eq20, veach-bound) when it is not
 below the interval; when a form *holds*).  What is verify's own is the choice of
@@ -21,12 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..analysis.theory import missing_forms
+from ..kernels.engine import select_receivers
+from ..kernels.estimators import COMBINERS, Estimator, parse_estimator
+from ..kernels.integrand import MATERIALS
+from ..kernels.patterns import PATTERNS
+from ..scenes import Scene
 from . import outdir
 from .cell import Row, RunCache, check_trials, measure_cell, summarize
-from .engine import select_receivers
-from .estimators import Estimator, parse_estimator
-from .scene import Scene
-from .vocabulary import COMBINERS, MATERIALS, PATTERNS
 
 DEFAULT_N = (4, 16, 64, 256, 1024)
 DEFAULT_TRIALS = 400
@@ -99,7 +101,7 @@ def verify(
 ) -> VerifyResult:
     """Measure and predict every cell; write ``out/verify.json`` as cells finish (if ``out``).
 
-    ``out`` is locked (:func:`warpis.outdir.locked`) once the arguments have been checked,
+    ``out`` is locked (:func:`warpis.runs.outdir.locked`) once the arguments have been checked,
     so bad input creates no folder and two runs never write one folder together.
     """
     techs = tuple(techniques) if techniques else default_techniques(scene)
@@ -141,6 +143,7 @@ def json_row(row: Row) -> dict:
                                  "reference_stderr", "variance", "variance_stderr", "variance_ci", "predictions")}
     out["prediction_rel_error"] = {k: _finite(e.rel_error) for k, e in row.predictions.items()}
     out["inside"], out["z"] = plain["inside"], plain["z"]
+    out["absent"] = missing_forms(row.estimator)  # forms in scope with no value, and why
     if row.mean_predictions:
         out["mean_predictions"] = {k: e.value for k, e in row.mean_predictions.items()}
         out["mean_inside"] = dict(row.mean_inside)
@@ -160,7 +163,7 @@ def write_json(out: Path, result: VerifyResult) -> None:
 
 def write_outputs(out: Path, result: VerifyResult, command: str) -> None:
     """``verify.md`` and the figures beside ``verify.json``, each replaced atomically."""
-    from . import plots
+    from .. import plots
 
     outdir.make_dir(out)
     outdir.write_text(out / "verify.md", markdown(result, command))

@@ -10,7 +10,7 @@ Two ways to collect the trials share one launch loop (:func:`_drive`):
 
 * :func:`run_trials` keeps every estimate, an (R, M) float64 array;
 * :func:`run_moments` keeps only running moments per receiver
-  (:class:`~warpis.stats.SampleMoments`): trials are reduced over fixed blocks of
+  (:class:`~warpis.analysis.stats.SampleMoments`): trials are reduced over fixed blocks of
   ``BLOCK`` trials and the blocks merged in trial order, so memory stays flat in M and
   the result does not depend on threads or chunks.
 """
@@ -22,18 +22,20 @@ import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import warp as wp
 
-from . import limits
+from .. import limits
+from ..analysis.stats import SampleMoments
+from ..errors import WarpisError
 from .device import DeviceScene, upload
-from .errors import WarpisError
 from .estimators import Estimator, KernelArgs, parse_estimator, trial_kernel_for_registry
-from .scene import Scene
-from .stats import SampleMoments
 from .techniques import light_table
+
+if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
+    from ..scenes import Scene
 
 # Target work of one launch, in integrand evaluations: large enough to amortise the
 # launch, small enough that progress moves, threads balance and Ctrl-C is prompt.

@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-from .errors import WarpisError
+from ..errors import WarpisError
 
 LOCK_NAME = ".lock"
 TMP_SUFFIX = ".warpis-tmp"

@@ -40,15 +40,16 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from .device import ReceiverData, SceneData, upload
-from .engine import default_threads
-from .errors import WarpisError
-from .estimators import Estimator, parse_estimator
-from .integrand import integrand, shading_point
-from .scene import Scene
-from .techniques import (LightTable, dispatch, light_table, sample_technique, sampler, technique_pdf,
-                         user_techniques)
-from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Blocks
+from ..errors import WarpisError
+from ..kernels.device import ReceiverData, SceneData, upload
+from ..kernels.engine import default_threads
+from ..kernels.estimators import COMBINERS, Estimator, parse_estimator
+from ..kernels.integrand import integrand, shading_point
+from ..kernels.patterns import PATTERNS
+from ..kernels.techniques import (TECHNIQUES, LightTable, dispatch, light_table, sample_technique, sampler,
+                                  technique_pdf, user_techniques)
+from ..scenes import Scene
+from ..vocabulary import Blocks
 
 REL_TOL = 0.01
 REPLICAS = 8
@@ -424,9 +425,7 @@ def _eq1(c: _Cell) -> Estimate:
 
 def _eq17(c: _Cell) -> Estimate | str:
     mom, n = c.mom, c.n
-    inv = mom.int_inv_g[0]  # infinite unless g is uniform: then the bound says nothing
-    if inv is None:
-        return f"∫ 1/g dω is not known for technique {c.est.techniques[0]!r}"
+    inv = mom.int_inv_g[0]  # infinite unless g is uniform: then the bound says nothing (known: _inverse_pdf_known)
     if mom.int_f2.value == 0:  # no light in view: f ≡ 0 and the bound is 0
         return Estimate(0.0, 0.0)
     return Estimate(mom.int_f2.value * inv / n, 0.0 if math.isinf(inv) else mom.int_f2.stderr * inv / n)
@@ -492,12 +491,23 @@ def _exact(c: _Cell) -> Estimate | str:
     return c.exact
 
 
+def _inverse_pdf_known(est: Estimator) -> str | None:
+    """eq17 needs ∫ 1/g dω of the technique (its registry entry may not give it)."""
+    if TECHNIQUES[est.techniques[0]].inverse_pdf_integral is None:
+        return f"∫ 1/g dω is not known for technique {est.techniques[0]!r}"
+    return None
+
+
+def _power_exact_known(est: Estimator) -> str | None:
+    """Veach's bound needs the exact variance of the power heuristic under the same pattern."""
+    power = Estimator(est.pattern, "power", est.techniques)
+    problem = exact_form_problem(power)
+    return f"needs the exact variance of {power.spec}: {problem}" if problem else None
+
+
 def _veach_bound(c: _Cell) -> Estimate | str:
     """Veach's bound with the power heuristic under the same pattern as the other weighting."""
     power = Estimator(c.est.pattern, "power", c.est.techniques)
-    problem = exact_form_problem(power)
-    if problem:
-        return f"needs the exact variance of {power.spec}: {problem}"
     v = exact_variance(c.scene, c.receiver, power, c.n, rel_tol=c.rel_tol)
     m = c.est.per_technique(c.n)
     return Estimate(v.value + (1 / m - 1 / c.n) * c.mom.I.value**2, v.stderr)
@@ -505,13 +515,22 @@ def _veach_bound(c: _Cell) -> Estimate | str:
 
 @dataclass(frozen=True)
 class Form:
-    """A prediction: the estimators it describes, how it is computed (an Estimate, or the
-    reason it cannot be), and whether it is an upper bound rather than an equation."""
+    """A prediction: the estimators it describes, what it needs of their registry entries
+    (``needs``: why an estimator in scope still has no value, or None), how it is computed
+    (an Estimate, or the reason it cannot be at this cell), and whether it is an upper
+    bound rather than an equation."""
 
     name: str
     scope: Scope
     compute: Callable[[_Cell], Estimate | str]
     bound: bool = False
+    needs: Callable[[Estimator], str | None] = lambda est: None
+
+    def problem(self, est: Estimator) -> str | None:
+        """Why this form gives no value for ``est`` whatever the scene, or None."""
+        if not self.scope.covers(est):
+            return f"applies only to {self.scope}"
+        return self.needs(est)
 
 
 # Every form (docs/theory.md derives each; README lists them), in the order they appear in
@@ -520,7 +539,7 @@ class Form:
 # descriptor, or a reason why not.
 FORMS: tuple[Form, ...] = (
     Form("eq1", Scope("independent", "single"), _eq1),
-    Form("eq17", Scope("independent", "single"), _eq17, bound=True),
+    Form("eq17", Scope("independent", "single"), _eq17, bound=True, needs=_inverse_pdf_known),
     Form("eq8", Scope("independent", "mixture"), _eq8),
     Form("eq7-printed", Scope("independent", "balance"), _eq7_printed),
     Form("eq7-exact", Scope("independent", "balance"), _eq7_exact),
@@ -528,15 +547,16 @@ FORMS: tuple[Form, ...] = (
     Form("eq19", Scope("independent", "biased"), _eq19),
     Form("eq20", Scope("independent", "biased"), _eq20, bound=True),
     Form("eq10-printed", Scope("jittered", "single"), _eq10_printed),
-    Form("eq10-exact", Scope("jittered", "single"), _exact),
+    Form("eq10-exact", Scope("jittered", "single"), _exact, needs=exact_form_problem),
     Form("eq14-printed", Scope("jittered", "balance"), _eq14_printed),
-    Form("eq14-exact", Scope("jittered", "balance"), _exact),
-    Form("power-exact", Scope(combiner="power"), _exact),
-    Form("mixture-exact", Scope(combiner="mixture", not_pattern="independent"), _exact),  # eq8 is independent's
-    Form("antithetic-exact", Scope("antithetic"), _exact),
-    Form("jittered-antithetic-exact", Scope("jittered-antithetic"), _exact),
-    Form("veach-bound", Scope(combiner="balance"), _veach_bound, bound=True),
-    Form("exact", Scope(), _exact),
+    Form("eq14-exact", Scope("jittered", "balance"), _exact, needs=exact_form_problem),
+    Form("power-exact", Scope(combiner="power"), _exact, needs=exact_form_problem),
+    Form("mixture-exact", Scope(combiner="mixture", not_pattern="independent"), _exact,  # eq8 is independent's
+         needs=exact_form_problem),
+    Form("antithetic-exact", Scope("antithetic"), _exact, needs=exact_form_problem),
+    Form("jittered-antithetic-exact", Scope("jittered-antithetic"), _exact, needs=exact_form_problem),
+    Form("veach-bound", Scope(combiner="balance"), _veach_bound, bound=True, needs=_power_exact_known),
+    Form("exact", Scope(), _exact, needs=exact_form_problem),
 )
 BOUNDS = tuple(f.name for f in FORMS if f.bound)
 
@@ -562,8 +582,9 @@ def predictions(scene: Scene, receiver: int, estimator: str | Estimator, n: int,
     cell = _Cell(scene, receiver, est, n, mom or moments(scene, receiver, est.techniques), rel_tol)
     out = Predictions()
     for form in FORMS:
-        if not form.scope.covers(est):
-            out.reasons[form.name] = f"applies only to {form.scope}"
+        problem = form.problem(est)
+        if problem:
+            out.reasons[form.name] = problem
             continue
         value = form.compute(cell)
         if isinstance(value, str):
@@ -571,6 +592,14 @@ def predictions(scene: Scene, receiver: int, estimator: str | Estimator, n: int,
         else:
             out[form.name] = value
     return out
+
+
+def missing_forms(estimator: str | Estimator) -> dict[str, str]:
+    """The forms whose scope covers ``estimator`` but which give it no value on any scene
+    (its registry entries lack what they need), each with the reason: what verify.json
+    and summary.json report as ``absent``."""
+    est = parse_estimator(estimator)
+    return {f.name: problem for f in FORMS if f.scope.covers(est) and (problem := f.needs(est))}
 
 
 def _form(value: float, source: Estimate, scale: float) -> Estimate:

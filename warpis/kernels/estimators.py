@@ -5,7 +5,7 @@ An estimator is spelled ``PATTERN:COMBINER:TECH[+TECH...]``, e.g.
 from N samples; the kernel computes a whole trial per thread (sampling, casting,
 weighting and the sum over N), so no per-sample Python and no R × M × N arrays.
 
-Combiners (entries of ``vocabulary.COMBINERS``; seed notation: g_k the pdf of technique
+Combiners (entries of ``COMBINERS`` (below); seed notation: g_k the pdf of technique
 k, ḡ their average, N_g techniques, m = N/N_g samples per technique):
 
 ``single``   IS with one technique: (1/N) Σ f/g.
@@ -23,18 +23,60 @@ import functools
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import warp as wp
 
-from . import limits
-from .errors import WarpisError
-from .integrand import ShadingPoint, integrand, shading_point
-from .patterns import pattern_point
-from .rng import stream, uniform
+from .. import limits
+from ..errors import WarpisError
+from ..vocabulary import Combiner, Pattern, Registry, grid_shape
 from .device import ReceiverData, SceneData
-from .techniques import LightTable, dispatch, sample_direction, technique_pdf, user_techniques
-from .vocabulary import COMBINERS, PATTERNS, TECHNIQUES, Combiner, Pattern, grid_shape
+from .integrand import ShadingPoint, integrand, shading_point
+from .patterns import PATTERNS, pattern_point, point_dispatch, user_patterns
+from .rng import stream, uniform
+from .techniques import TECHNIQUES, LightTable, dispatch, sample_direction, technique_pdf, user_techniques
 
-# The kernels' combiner codes, from the registry (vocabulary.COMBINERS).
+
+def _importance_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
+    return f / pdf[:, k]
+
+
+def _unweighted(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
+    return f.copy()
+
+
+def _balance_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
+    return f * pdf.shape[1] / pdf.sum(axis=1)  # f/ḡ
+
+
+def _power_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
+    return f * pdf[:, k] / (pdf**2).sum(axis=1)  # w_k f/g_k, w_k = g_k²/Σ_j g_j²
+
+
+COMBINERS: Registry[Combiner] = Registry("combiner", [
+    Combiner(name="single", code=0, description="IS with one technique: (1/N) Σ f/g", several=False,
+             weights=_importance_weights),
+    Combiner(name="mixture", code=1, description="IS from the averaged pdf ḡ: a technique picked at random per "
+                                                 "sample, weight f/ḡ",
+             several=True, random_pick=True, weights=_balance_weights, verify_under=("independent", "jittered")),
+    Combiner(name="balance", code=2, description="multi-sample MIS, balance heuristic: N/N_g samples per "
+                                                 "technique, weight f/ḡ",
+             several=True, splits_n=True, divides_by_n=True, weights=_balance_weights),
+    Combiner(name="power", code=3, description="multi-sample MIS, power heuristic (β = 2): N/N_g samples per "
+                                               "technique",
+             several=True, splits_n=True, weights=_power_weights, verify_under=("independent", "jittered")),
+    Combiner(name="biased", code=4, description="the unweighted mean of f over samples of one technique: "
+                                                "converges to ∫ f g, not F",
+             several=False, unbiased=False, weights=_unweighted, verify_under=("independent",)),
+])
+
+def estimator_help() -> str:
+    """The axes of an estimator spec, PATTERN:COMBINER:TECH[+TECH...], a line per entry
+    (for ``--help``)."""
+    return "\n".join(f"{axis} ({part}):\n{registry.help()}" for axis, part, registry in (
+        ("patterns", "PATTERN", PATTERNS), ("combiners", "COMBINER", COMBINERS), ("techniques", "TECH", TECHNIQUES)))
+
+
+# The kernels' combiner codes, from the registry (COMBINERS above).
 SINGLE = wp.constant(COMBINERS["single"].code)
 MIXTURE = wp.constant(COMBINERS["mixture"].code)
 BALANCE = wp.constant(COMBINERS["balance"].code)
@@ -67,12 +109,12 @@ class Estimator:
 
     @property
     def pattern_entry(self) -> Pattern:
-        """The pattern's descriptor in ``vocabulary.PATTERNS``."""
+        """The pattern's descriptor in ``PATTERNS`` (kernels/patterns.py)."""
         return PATTERNS[self.pattern]
 
     @property
     def combiner_entry(self) -> Combiner:
-        """The combiner's descriptor in ``vocabulary.COMBINERS``."""
+        """The combiner's descriptor in ``COMBINERS`` (below)."""
         return COMBINERS[self.combiner]
 
     def _problem(self) -> str | None:
@@ -170,9 +212,11 @@ def contribution(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
     return integrand(scene, sp, w)
 
 
-def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -> Any:
+def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point: Any, module: Any) -> Any:
     """The trial kernel over the technique dispatch ``sample_direction``/``technique_pdf``
-    (the built-in functions, or those of :func:`warpis.techniques.dispatch` for user techniques)."""
+    and the pattern dispatch ``pattern_point`` (the built-in functions, or those of
+    :func:`warpis.kernels.techniques.dispatch` and :func:`warpis.kernels.patterns.point_dispatch`
+    for user techniques and patterns)."""
 
     @wp.func(module=module)
     def other_pdfs(techs: wp.array(dtype=wp.int32), k: wp.int32, pdf_k: float, scene: SceneData, table: LightTable,
@@ -256,17 +300,18 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -
     return trial_kernel
 
 
-trial_kernel = _make_trial_kernel(sample_direction, technique_pdf, None)
+trial_kernel = _make_trial_kernel(sample_direction, technique_pdf, pattern_point, None)
 
 
 @functools.lru_cache(maxsize=None)
-def _trial_kernel_for(user: tuple) -> Any:
-    if not user:
+def _trial_kernel_for(user: tuple, user_points: tuple = ()) -> Any:
+    if not user and not user_points:
         return trial_kernel
-    return _make_trial_kernel(*dispatch(user), "unique")
+    return _make_trial_kernel(*dispatch(user), point_dispatch(user_points), "unique")
 
 
 def trial_kernel_for_registry() -> Any:
-    """The trial kernel that knows every registered technique: the built-in ``trial_kernel``
-    itself unless user techniques are registered (one kernel per set of them, cached)."""
-    return _trial_kernel_for(user_techniques())
+    """The trial kernel that knows every registered technique and pattern: the built-in
+    ``trial_kernel`` itself unless user techniques or patterns are registered (one kernel
+    per set of them, cached)."""
+    return _trial_kernel_for(user_techniques(), user_patterns())

@@ -5,7 +5,7 @@ A study file holds one ``[study]`` table (README.md, "Studies", gives the format
 one row per receiver to ``OUT/results.csv`` and refreshes ``OUT/summary.json``.  Both are
 rewritten after every cell through a uniquely named temporary file and :func:`os.replace`,
 so a run killed at any moment leaves valid files holding every finished cell.  A run holds
-an exclusive lock on ``OUT`` (``OUT/.lock``, :mod:`warpis.outdir`) from start to end, so a
+an exclusive lock on ``OUT`` (``OUT/.lock``, :mod:`warpis.runs.outdir`) from start to end, so a
 second run on the same folder stops at once instead of racing the first.
 
 Each cell has a *key*: a hash of the scene's content digest (``Scene.digest``: its
@@ -40,14 +40,15 @@ from typing import Any
 
 import numpy as np
 
-from . import limits, outdir
+from .. import limits
+from ..analysis.stats import fit_slope
+from ..analysis.theory import BOUNDS, missing_forms
+from ..errors import WarpisError
+from ..kernels.estimators import Estimator, parse_estimator
+from ..scenes import Scene, load_scene, read_toml, resolve_scene_path
+from ..vocabulary import expected_slope as registry_slope
+from . import outdir
 from .cell import MIN_TRIALS, Row, RunCache, inside, measure_cell, summarize
-from .errors import WarpisError
-from .estimators import Estimator, parse_estimator
-from .scene import Scene, load_scene, read_toml, resolve_scene_path
-from .stats import fit_slope
-from .theory import BOUNDS
-from .vocabulary import expected_slope as registry_slope
 
 STUDY_KEYS = ("name", "description", "seed", "trials", "n", "scenes", "estimators", "receivers", "predictions",
               "outputs", "threads")
@@ -93,7 +94,7 @@ DEMO = {
 
 
 def _version() -> str:
-    from . import __version__
+    from .. import __version__
 
     return __version__
 
@@ -375,7 +376,7 @@ def typed_row(raw: list[str]) -> dict[str, Any]:
 
 
 def compute_cell(study: Study, cell: Cell, cache: RunCache) -> list[list[str]]:
-    """Run one cell through the shared pipeline (:func:`warpis.cell.measure_cell`) → CSV rows (strings)."""
+    """Run one cell through the shared pipeline (:func:`warpis.runs.cell.measure_cell`) → CSV rows (strings)."""
     s = cell.scene
     measured = measure_cell(s.scene, s.receivers, cell.estimator, cell.n, study.trials, study.seed, cache,
                             predict=study.predictions, threads=study.threads)
@@ -552,6 +553,9 @@ def summary(study: Study, cells: list[Cell], done: dict, rows: list[dict]) -> di
         "complete": all(c.key in done for c in cells),
         "slopes": slopes(rows, study),
         "forms": form_summaries(rows) if study.predictions else [],
+        # Forms whose scope covers an estimator that has no value for it, and why.
+        "absent": {e.spec: missing for e in study.estimators if (missing := missing_forms(e))}
+        if study.predictions else {},
     }
 
 
@@ -582,7 +586,7 @@ def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | No
 
     ``progress(done, total)`` counts the cells this run computes; ``log`` receives one-line
     notes (cells skipped, rows dropped, damaged rows) as they happen.  The folder is locked
-    for the whole run (:func:`warpis.outdir.locked`): a second run on it fails at once,
+    for the whole run (:func:`warpis.runs.outdir.locked`): a second run on it fails at once,
     so no run ever rewrites results.csv without rows the other one finished.  A file that
     cannot be written is a one-line WarpisError; the files already there stay intact.
     """
@@ -644,7 +648,7 @@ def _index(rows: list[dict]) -> dict[tuple, dict]:
 
 def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], list[str]]:
     """Every figure the study's ``outputs`` ask for (PNG and PDF) → (paths, notes for the report)."""
-    from . import plots
+    from .. import plots
 
     paths: list[Path] = []
     notes: list[str] = []

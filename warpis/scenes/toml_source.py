@@ -1,0 +1,322 @@
+"""The TOML scene source: a scene file → :class:`~warpis.scenes.description.Scene`.
+
+A scene file lists meshes in any format trimesh reads, each with an optional transform
+and an optional one-sided ``emission``, receivers (explicit points or grids, in one or
+several groups) and the material at the receivers (README.md, "Scene files").  It
+produces its arrays and hands them to the same gate as :meth:`Scene.from_arrays`.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import trimesh
+
+from .. import limits
+from ..errors import WarpisError, fail
+from ..kernels.integrand import MATERIALS
+from .description import Receivers, Scene, _assemble, _coordinates, _receiver_count, _unit
+
+
+def _check_keys(table: dict, allowed: set[str], where: str, file: Path) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise fail(file, f"unknown key {unknown[0]!r} in {where} (allowed: {', '.join(sorted(allowed))})")
+
+def _require(table: dict, key: str, where: str, file: Path) -> Any:
+    if key not in table:
+        raise fail(file, f"missing key {key!r} in {where}")
+    return table[key]
+
+def _number(value: Any, what: str, file: Path) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise fail(file, f"{what} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise fail(file, f"{what} must be finite, got {value!r}")
+    return float(value)
+
+def _vector(value: Any, what: str, file: Path, length: int = 3) -> np.ndarray:
+    if not isinstance(value, list) or len(value) != length:
+        raise fail(file, f"{what} must be a list of {length} numbers, got {value!r}")
+    return np.array([_number(v, what, file) for v in value], dtype=np.float64)
+
+def _vectors(value: Any, what: str, file: Path) -> np.ndarray:
+    if not isinstance(value, list) or not value:
+        raise fail(file, f"{what} must be a non-empty list of [x, y, z] points")
+    return np.array([_vector(v, what, file) for v in value], dtype=np.float64).reshape(-1, 3)
+
+def _float32(value: float, what: str, file: Path) -> float:
+    """A value >= 0 in the float32 kernels' range (see limits.float32_value)."""
+    try:
+        return limits.float32_value(value, what)
+    except WarpisError as exc:
+        raise fail(file, str(exc)) from None
+
+def rotation_matrix(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """Right-handed rotation by ``degrees`` about ``axis`` (Rodrigues' formula)."""
+    k = axis / np.linalg.norm(axis)
+    a = math.radians(degrees)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(a) * kx + (1 - math.cos(a)) * kx @ kx
+
+def _transform(spec: Any, where: str, file: Path) -> np.ndarray:
+    """A [[mesh]] transform table → 4×4 matrix: scale, then rotate, then translate."""
+    if not isinstance(spec, dict):
+        raise fail(file, f"{where}.transform must be a table")
+    _check_keys(spec, {"translate", "scale", "rotate"}, f"{where}.transform", file)
+    scale = spec.get("scale", 1.0)
+    if isinstance(scale, list):
+        s = _vector(scale, f"{where}.transform.scale", file)
+    else:
+        s = np.full(3, _number(scale, f"{where}.transform.scale", file))
+    if np.any(s == 0):
+        raise fail(file, f"{where}.transform.scale must not be zero")
+    r = np.eye(3)
+    if "rotate" in spec:
+        rot = spec["rotate"]
+        if not isinstance(rot, dict):
+            raise fail(file, f"{where}.transform.rotate must be a table with axis and degrees")
+        _check_keys(rot, {"axis", "degrees"}, f"{where}.transform.rotate", file)
+        axis = _vector(_require(rot, "axis", f"{where}.transform.rotate", file), f"{where}.transform.rotate.axis", file)
+        _unit(axis, f"{where}.transform.rotate.axis", file)
+        degrees = _number(_require(rot, "degrees", f"{where}.transform.rotate", file), f"{where}.transform.rotate.degrees", file)
+        r = rotation_matrix(axis, degrees)
+    t = _vector(spec.get("translate", [0, 0, 0]), f"{where}.transform.translate", file)
+    m = np.eye(4)
+    m[:3, :3] = r @ np.diag(s)
+    m[:3, 3] = t
+    return m
+
+
+# Text formats whose loaders decode the file: trimesh guesses a non-UTF-8 encoding with
+# the optional charset_normalizer, so warpis decodes them itself (UTF-8, else Latin-1,
+# which accepts any byte; only comments and names can hold such bytes).
+
+_TEXT_FORMATS = {".obj", ".off"}
+
+def _trimesh_load(path: Path) -> Any:
+    if path.suffix.lower() not in _TEXT_FORMATS:
+        return trimesh.load(str(path), force="mesh", process=False)
+    raw = path.read_bytes()
+    try:
+        raw.decode("utf-8")
+    except UnicodeDecodeError:
+        raw = raw.decode("latin-1").encode("utf-8")
+    return trimesh.load(io.BytesIO(raw), file_type=path.suffix[1:].lower(), force="mesh", process=False)
+
+def _read_mesh(path: Path, scene_file: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a mesh file, exactly as written (no vertex merging)."""
+    if not path.is_file():
+        raise fail(path, f"mesh file not found (named in {scene_file})")
+    try:
+        loaded = _trimesh_load(path)
+    except OSError as exc:
+        raise fail(path, f"cannot read: {exc.strerror or exc}") from None
+    except Exception as exc:  # trimesh raises many types for unparsable files
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise fail(path, f"trimesh cannot read this mesh: {reason}") from None
+    vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+    if faces.ndim != 2 or len(faces) == 0:
+        raise fail(path, "mesh has no triangles (or trimesh cannot read it as a triangle mesh)")
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.argmax(~np.all(np.isfinite(vertices), axis=1)))
+        raise fail(path, f"vertex {bad} is NaN or infinite")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise fail(path, "a face refers to a vertex that does not exist")
+    return vertices, faces
+
+def _float32_number(value: Any, what: str, file: Path) -> float:
+    return _float32(_number(value, what, file), what, file)
+
+def _unit_vector(value: Any, what: str, file: Path) -> np.ndarray:
+    return _unit(_vector(value, what, file), what, file)
+
+
+# The keys a material table may hold (each material lists its own in MATERIALS (kernels/integrand.py)):
+# how each is read, and its value for a material without it (or that leaves it out).
+
+MATERIAL_PARAMETERS: dict[str, tuple[Callable[[Any, str, Path], Any], Any]] = {
+    "albedo": (_float32_number, 1.0),
+    "exponent": (_float32_number, 1.0),
+    "view": (_unit_vector, np.array([0.0, 0.0, 1.0])),
+}
+
+def _material(spec: Any, where: str, file: Path) -> dict[str, Any]:
+    if not isinstance(spec, dict):
+        raise fail(file, f"{where} must be a table")
+    kind = _require(spec, "type", where, file)
+    if kind not in MATERIALS:
+        raise fail(file, f"{where}.type {kind!r} is not one of {', '.join(MATERIALS)}")
+    material = MATERIALS[kind]
+    _check_keys(spec, {"type", *material.keys}, where, file)
+    out: dict[str, Any] = {"code": material.code}
+    for key, (parse, default) in MATERIAL_PARAMETERS.items():
+        if key in material.required:
+            out[key] = parse(_require(spec, key, where, file), f"{where}.{key}", file)
+        elif key in spec:
+            out[key] = parse(spec[key], f"{where}.{key}", file)
+        else:
+            out[key] = default
+    return out
+
+def _grid_points(spec: Any, where: str, file: Path) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
+    if not isinstance(spec, dict):
+        raise fail(file, f"{where}.grid must be a table")
+    _check_keys(spec, {"origin", "edge_u", "edge_v", "resolution"}, f"{where}.grid", file)
+    origin = _vector(_require(spec, "origin", f"{where}.grid", file), f"{where}.grid.origin", file)
+    eu = _vector(_require(spec, "edge_u", f"{where}.grid", file), f"{where}.grid.edge_u", file)
+    ev = _vector(_require(spec, "edge_v", f"{where}.grid", file), f"{where}.grid.edge_v", file)
+    res = _require(spec, "resolution", f"{where}.grid", file)
+    if (not isinstance(res, list) or len(res) != 2
+            or not all(isinstance(r, int) and not isinstance(r, bool) for r in res)):
+        raise fail(file, f"{where}.grid.resolution must be two integers, got {res!r}")
+    nu, nv = res
+    if nu < 1 or nv < 1:
+        raise fail(file, f"{where}.grid.resolution must be at least [1, 1], got {res!r}")
+    _receiver_count(nu * nv, f"{where}.grid.resolution {res!r}", file)
+    cross = np.cross(eu, ev)
+    # Relative to the edges' own lengths: a grid's size is the user's choice of units.
+    if not np.linalg.norm(cross) > 1e-12 * np.linalg.norm(eu) * np.linalg.norm(ev):
+        raise fail(file, f"{where}.grid edges are parallel or zero")
+    # Cell centres, row-major over (v, u) so that reshape(nv, nu) is an image.
+    su = (np.arange(nu) + 0.5) / nu
+    sv = (np.arange(nv) + 0.5) / nv
+    pts = origin + sv[:, None, None] * ev + su[None, :, None] * eu
+    return pts.reshape(-1, 3), (nv, nu), cross / np.linalg.norm(cross)
+
+
+# Bytes a receiver costs while a scene loads (float64 numpy arrays, their float32 Warp
+# copies, the slab and the light table's row headers), for the memory check up front.
+
+def _receiver_group(spec: Any, where: str, file: Path, default_material: dict | None) -> dict[str, Any]:
+    if not isinstance(spec, dict):
+        raise fail(file, f"{where} must be a table")
+    _check_keys(spec, {"points", "grid", "normal", "normals", "name", "material"}, where, file)
+    if ("points" in spec) == ("grid" in spec):
+        raise fail(file, f"{where} needs exactly one of 'points' or 'grid'")
+    grid_shape = None
+    if "points" in spec:
+        points = _vectors(spec["points"], f"{where}.points", file)
+        default_normal = None
+    else:
+        points, grid_shape, default_normal = _grid_points(spec["grid"], where, file)
+    if "normal" in spec and "normals" in spec:
+        raise fail(file, f"{where} has both 'normal' and 'normals'")
+    if "normals" in spec:
+        normals = _vectors(spec["normals"], f"{where}.normals", file)
+        if len(normals) != len(points):
+            raise fail(file, f"{where}.normals has {len(normals)} entries for {len(points)} points")
+    elif "normal" in spec:
+        normals = np.tile(_vector(spec["normal"], f"{where}.normal", file), (len(points), 1))
+    elif default_normal is not None:
+        normals = np.tile(default_normal, (len(points), 1))
+    else:
+        raise fail(file, f"{where} needs 'normal' or 'normals'")
+    normals = _unit(normals, f"{where} normal", file)
+    if "material" in spec:
+        material = _material(spec["material"], f"{where}.material", file)
+    elif default_material is not None:
+        material = default_material
+    else:
+        raise fail(file, f"{where} has no material and the scene has no [material] table")
+    name = spec.get("name", where)
+    if not isinstance(name, str):
+        raise fail(file, f"{where}.name must be a string")
+    _coordinates(points, f"{where} receivers", file)
+    return {"points": points, "normals": normals, "material": material, "name": name, "grid": grid_shape}
+
+def _receivers(doc: dict, file: Path) -> Receivers:
+    default = _material(doc["material"], "[material]", file) if "material" in doc else None
+    spec = _require(doc, "receivers", "the scene", file)
+    groups_spec = spec if isinstance(spec, list) else [spec]
+    if not groups_spec:
+        raise fail(file, "[[receivers]] is empty")
+    groups = [
+        _receiver_group(g, "[receivers]" if len(groups_spec) == 1 else f"[[receivers]] #{i + 1}", file, default)
+        for i, g in enumerate(groups_spec)
+    ]
+    count = [len(g["points"]) for g in groups]
+    _receiver_count(sum(count), "[[receivers]]", file)
+    return Receivers(
+        positions=np.vstack([g["points"] for g in groups]),
+        normals=np.vstack([g["normals"] for g in groups]),
+        material=np.concatenate([np.full(c, g["material"]["code"], np.int32) for g, c in zip(groups, count)]),
+        albedo=np.concatenate([np.full(c, g["material"]["albedo"]) for g, c in zip(groups, count)]),
+        exponent=np.concatenate([np.full(c, g["material"]["exponent"]) for g, c in zip(groups, count)]),
+        view=np.vstack([np.tile(g["material"]["view"], (c, 1)) for g, c in zip(groups, count)]),
+        group=np.concatenate([np.full(c, i, np.int32) for i, c in enumerate(count)]),
+        group_names=[g["name"] for g in groups],
+        grid_shape=groups[0]["grid"] if len(groups) == 1 else None,
+    )
+
+def read_toml(file: Path) -> dict:
+    """Parse a TOML file (scene or study); any unreadable file is a one-line WarpisError."""
+    try:
+        with open(file, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise fail(file, f"not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:
+        raise fail(file, f"not valid TOML: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except RecursionError:
+        raise fail(file, "not valid TOML: nested too deeply") from None
+    except IsADirectoryError:
+        raise fail(file, "is a directory, not a TOML file") from None
+    except OSError as exc:
+        raise fail(file, f"cannot read: {exc.strerror}") from None
+
+def _meshes(doc: dict, file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    entries = _require(doc, "mesh", "the scene", file)
+    if not isinstance(entries, list) or not entries:
+        raise fail(file, "the scene needs at least one [[mesh]]")
+    vertices, triangles, emission, owner, paths = [], [], [], [], []
+    offset = 0
+    for i, entry in enumerate(entries):
+        where = f"[[mesh]] #{i + 1}"
+        if not isinstance(entry, dict):
+            raise fail(file, f"{where} must be a table")
+        _check_keys(entry, {"path", "emission", "transform", "name"}, where, file)
+        rel = _require(entry, "path", where, file)
+        if not isinstance(rel, str):
+            raise fail(file, f"{where}.path must be a string")
+        radiance = entry.get("emission", 0.0)
+        if isinstance(radiance, bool) or not isinstance(radiance, (int, float)):
+            raise fail(file, f"{where} ({rel}): emission must be a finite number >= 0, got {radiance!r}")
+        radiance = _float32(float(radiance), f"{where} ({rel}): emission", file)
+        if not isinstance(entry.get("name", ""), str):
+            raise fail(file, f"{where}.name must be a string, got {entry['name']!r}")
+        v, f = _read_mesh((file.parent / rel), file)
+        if "transform" in entry:
+            m = _transform(entry["transform"], where, file)
+            with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
+                v = v @ m[:3, :3].T + m[:3, 3]
+        _coordinates(v, f"{where} ({rel}) after its transform", file)
+        vertices.append(v)
+        triangles.append(f + offset)
+        emission.append(np.full(len(f), float(radiance)))
+        owner.append(np.full(len(f), i, np.int32))
+        paths.append(rel)
+        offset += len(v)
+    return np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission), np.concatenate(owner), paths
+
+def load_toml(file: Path, device: str = "cpu") -> Scene:
+    """The scene of the TOML scene file ``file`` on Warp device ``device`` (README.md, "Scene files")."""
+    doc = read_toml(file)
+    _check_keys(doc, {"name", "description", "mesh", "receivers", "material"}, "the top level", file)
+    name = doc.get("name", file.parent.name if file.name == "scene.toml" else file.stem)
+    if not isinstance(name, str):
+        raise fail(file, "name must be a string")
+    if not isinstance(doc.get("description", ""), str):
+        raise fail(file, "description must be a string")
+    vertices, triangles, emission, owner, paths = _meshes(doc, file)
+    receivers = _receivers(doc, file)
+    return _assemble(file, lambda m: file.parent / paths[m], "give some [[mesh]] an emission > 0", name=name,
+                     vertices=vertices, triangles=triangles, emission=emission, receivers=receivers,
+                     triangle_mesh=owner, mesh_names=paths, description=str(doc.get("description", "")),
+                     device=str(device), path=file)
