@@ -72,6 +72,18 @@ def light_entry(path: str = "light.obj", emission: float = 10.0, height: float =
     return {"path": path, "vertices": v, "faces": f, "emission": emission, **keys}
 
 
+def concat_meshes(meshes: list[tuple[np.ndarray, np.ndarray, float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vertices, faces, radiance) of several meshes → one scene's vertices, triangles and
+    per-triangle emission, for ``Scene.from_arrays``."""
+    verts, faces, emission, offset = [], [], [], 0
+    for v, f, radiance in meshes:
+        verts.append(np.asarray(v, dtype=float))
+        faces.append(np.asarray(f) + offset)
+        emission += [radiance] * len(f)
+        offset += len(v)
+    return np.vstack(verts), np.vstack(faces), np.array(emission, dtype=float)
+
+
 def write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> Path:
     """Write a triangle mesh in the format of ``path``'s suffix.
 

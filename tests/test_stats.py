@@ -205,16 +205,31 @@ def test_fit_slope_exact_power_law():
 
 
 def test_fit_slope_recovers_noisy_slope():
-    """Synthetic measurements v = 3·n^-1.5·(1 + 0.05ε) with known se = 0.05·v_true: both the
-    weighted (normal quantile) and unweighted (t quantile) 95% intervals contain −1.5 for
-    this seed and are narrow. False-failure probability ≈ 0.1 for the two intervals together
-    under a new seed (each misses 5% of the time); deterministic for the fixed seed."""
+    """Synthetic measurements v = 3·n^-1.5·(1 + 0.05ε) at 12 points with known se =
+    0.05·v_true: both fits (weighted, normal quantile; unweighted, Student's t with 10
+    dof) recover −1.5 within their own standard error, and their 95% intervals are
+    slope ∓ quantile·se and narrow.
+
+    False-failure rate (deterministic for the fixed seed; under another seed):
+    |slope + 1.5|/se exceeds the two-sided 1e-5 quantile (normal for the weighted fit,
+    t(10) for the unweighted, whose se comes from the residuals) with probability 1e-5
+    each; the unweighted interval's width 2·t₀.₉₇₅(10)·se exceeds 0.05 only when the
+    residual scale is > 1.86× the truth (χ²₁₀ > 34.6: 1.5e-4), the weighted width is fixed
+    (0.024).  In all ≤ 1.7e-4.  (The former check — both 95% intervals contain −1.5 — failed
+    a correct fit 10% of the time.)"""
+    from scipy.stats import norm, t
+
     rng = np.random.default_rng(7)
     n = 2.0 ** np.arange(2, 14)
     truth = 3.0 * n ** -1.5
     v = truth * (1.0 + 0.05 * rng.standard_normal(n.size))
-    for fit in (fit_slope(n, v, 0.05 * truth), fit_slope(n, v)):
-        assert fit.slope_lo <= -1.5 <= fit.slope_hi, fit
+    weighted, plain = fit_slope(n, v, 0.05 * truth), fit_slope(n, v)
+    for fit, q95, q_tail in ((weighted, norm.ppf(0.975), norm.isf(0.5e-5)),
+                             (plain, t.ppf(0.975, n.size - 2), t.isf(0.5e-5, n.size - 2))):
+        assert fit.dof == n.size - 2
+        assert abs(fit.slope + 1.5) <= q_tail * fit.slope_stderr, fit
+        assert fit.slope_lo == pytest.approx(fit.slope - q95 * fit.slope_stderr, rel=1e-9), fit
+        assert fit.slope_hi == pytest.approx(fit.slope + q95 * fit.slope_stderr, rel=1e-9), fit
         assert fit.slope_hi - fit.slope_lo < 0.05, fit
 
 

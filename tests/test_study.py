@@ -1,7 +1,8 @@
 """Studies: validation before any work, resuming after a kill, figures, recomputing only what changed.
 
 Every study here is tiny (2–4 receivers, N = 4 and 16, 50–100 trials); only the kill test
-attaches predictions, which also makes its cells slow enough to be killed between two.
+attaches predictions.  Nothing here is statistical: every number is a deterministic
+function of the seed, and the kill lands at a known cell (SIGSTOP from inside, not a race).
 """
 
 from __future__ import annotations
@@ -44,54 +45,93 @@ def read_csv(path: Path) -> list[list[str]]:
         return list(csv.reader(fh))
 
 
+# A study run that stops itself (SIGSTOP) right after results.csv and summary.json have
+# been written with exactly K finished cells: warpis.runs.study.write_results, wrapped in
+# the child process only (no hook in warpis), so the kill lands at a known point instead of
+# racing a polling loop.  argv: K, then the warpis command line.
+STOP_AFTER_K_CELLS = """
+import os, signal, sys
+import warpis.runs.study as study
+from warpis.cli import main
+
+K = int(sys.argv[1])
+write_results = study.write_results
+
+def stop_after_k(out, s, cells, done, *args, **kwargs):  # done: cell key -> its finished rows
+    write_results(out, s, cells, done, *args, **kwargs)
+    if len(done) == K:
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+study.write_results = stop_after_k
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _wait_until_stopped(proc: subprocess.Popen, timeout: float, stderr: Path) -> None:
+    """Block until ``proc`` is stopped by a signal (it must not exit first)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        pid, status = os.waitpid(proc.pid, os.WNOHANG | os.WUNTRACED)
+        if pid:
+            if not os.WIFSTOPPED(status):  # reaped here: tell Popen, so that nothing signals the pid again
+                proc.returncode = os.waitstatus_to_exitcode(status)
+                raise AssertionError(f"the study ended (exit {proc.returncode}) instead of stopping after its "
+                                     f"cells: {stderr.read_text()}")
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"the study did not stop within {timeout} s")
+
+
 def without_seconds(rows: list[list[str]]) -> list[list[str]]:
+    """Every column but the wall-clock ``seconds`` (the header row included)."""
     i = HEADER.index("seconds")
     return [r[:i] + r[i + 1:] for r in rows]
 
 
-def cli_study(*args: str, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "warpis.cli", "study", *map(str, args)], **kw)
-
-
-def test_killed_run_resumes_to_the_same_files(tmp_path):
-    """A study process killed (SIGKILL) after its first cell leaves valid files holding the finished
-    cells; rerunning the same command skips them (and says so), copies their rows verbatim and ends
-    with results.csv identical to an uninterrupted run in another directory (byte for byte once the
-    wall-clock ``seconds`` column is set aside) and summary.json identical byte for byte."""
+def test_killed_run_resumes_to_the_same_files(tmp_path, cli):
+    """A study process killed (SIGKILL) after exactly K = 2 of its 4 cells — stopped by
+    SIGSTOP right after the second cell's files were written, so the point is known, not
+    raced — leaves valid files holding exactly those cells; rerunning the same command
+    skips exactly those 2 (and says so), computes the other 2, keeps the finished rows
+    verbatim (seconds included), and ends with results.csv equal to an uninterrupted run's
+    in every column but ``seconds`` and summary.json identical byte for byte.
+    Deterministic: no timing, no statistics."""
+    k, total = 2, 4
     study = write_study(tmp_path / "study.toml", **tiny(predictions=True, outputs=["calibration"],
                                                          estimators=["independent:single:light-area",
                                                                      "independent:balance:light-area+cosine"]))
     full, cut = tmp_path / "full", tmp_path / "cut"
-    # The uninterrupted run goes alongside the one to be killed (most of each is start-up).
-    ok = cli_study(study, "--out", full, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    proc = cli_study(study, "--out", cut, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    results = cut / "results.csv"
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and proc.poll() is None:
-        if results.is_file() and len(read_csv(results)) > 1:
-            break
-        time.sleep(0.01)
-    assert proc.poll() is None, "the study finished before it could be killed"
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait(timeout=30)
+    with open(tmp_path / "stderr.txt", "w") as err:
+        proc = subprocess.Popen([sys.executable, "-c", STOP_AFTER_K_CELLS, str(k), "study", str(study), "--out",
+                                 str(cut)], stdout=subprocess.DEVNULL, stderr=err)
+        try:
+            _wait_until_stopped(proc, timeout=240, stderr=tmp_path / "stderr.txt")
+            # Stopped: nothing more can be written.  What is on disk now is what a kill leaves.
+            killed = read_csv(cut / "results.csv")
+            summary_at_kill = load_json(cut / "summary.json")
+        finally:
+            proc.kill()  # SIGKILL, delivered to a stopped process too
+            proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL, (tmp_path / "stderr.txt").read_text()
 
-    killed = read_csv(results)  # still a valid CSV holding whole cells only
     assert killed[0] == HEADER
-    cells = {r[-1] for r in killed[1:]}
-    assert len(killed) - 1 == 2 * len(cells) and 1 <= len(cells) < 4
-    assert load_json(cut / "summary.json")["cells"]["finished"] in (len(cells) - 1, len(cells))
+    cells_at_kill = list(dict.fromkeys(r[-1] for r in killed[1:]))
+    assert len(cells_at_kill) == k and len(killed) - 1 == 2 * k  # whole cells only: 2 receivers each
+    assert summary_at_kill["cells"] == {"total": total, "finished": k} and not summary_at_kill["complete"]
 
-    again = cli_study(study, "--out", cut, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    out, err = again.communicate(timeout=240)
-    assert again.returncode == 0, err
-    assert f"skipping {len(cells)} of 4 cells" in out
-    assert ok.wait(timeout=240) == 0, ok.stderr.read()
+    result = cli("study", study, "--out", cut)
+    assert result.status == 0, result.err
+    assert f"skipping {k} of {total} cells" in result.out, result.out
+    assert f"computed {total - k} cell(s), skipped {k} already finished" in result.out, result.out
+    assert "recomputing" not in result.out and "unreadable" not in result.out
 
-    resumed, reference = read_csv(results), read_csv(full / "results.csv")
+    assert cli("study", study, "--out", full).status == 0  # the uninterrupted run
+    resumed, reference = read_csv(cut / "results.csv"), read_csv(full / "results.csv")
+    assert len(resumed) == 1 + 2 * total and all(r[HEADER.index("pred_exact")] for r in resumed[1:])
+    assert resumed[1:1 + 2 * k] == killed[1:]  # the finished cells first (canonical order), verbatim, seconds too
+    assert [r[-1] for r in resumed[1:]] == [r[-1] for r in reference[1:]]
     assert without_seconds(resumed) == without_seconds(reference)
-    assert all(row in resumed for row in killed[1:])  # finished rows kept verbatim, seconds included
     assert (cut / "summary.json").read_bytes() == (full / "summary.json").read_bytes()
-    assert len(resumed) == 9 and all(r[HEADER.index("pred_exact")] for r in resumed[1:])
     assert (cut / "figures" / "calibration.png").stat().st_size > 1000
 
 

@@ -33,7 +33,15 @@ must fail (the chi-square bites: cosine samples against the uniform pdf, light-a
 samples against the light-power pdf) are required to reach p < 1e-30.  The kernel-level
 checks are deterministic.
 
-Kernel-level checks: the pdf each sample reports equals ``direction_pdf`` at its
+*Integrals.*  Each chi-square run also holds the harness's quadrature of the pdf over its
+window (``pdf_integral``) against the exact mass of that window (1 on the sphere, 1 − 1e-3
+in a lobe window, the numpy light pdf's mass in a light window) to 5e-4 relative (5e-3 on
+the two coarse 4 × 8 grids): deterministic (fixed quadrature seeds; measured errors 1.2e-4
+and 2.3e-3 at most), and a pdf scaled by 1.01 fails it, which the histogram alone would
+not show (the sampler reports the same scaled pdf).
+
+Kernel-level checks: the pdf each sample reports equals an independent float64 numpy
+pdf (closed forms; for lights a sum over emitter crossings) and ``direction_pdf`` at its
 direction; light pdfs sum over every emitter crossing (both sides of a sphere light,
 two lights on one ray) and count a shared edge once; the four quadrants of u map under
 light-area to four disjoint halves of the two triangles of a quad light, which they
@@ -54,6 +62,7 @@ import numpy as np
 import pytest
 import warp as wp
 from conftest import write_scene
+from test_light_pdf import ray_crossings, triangle_solid_angles
 from scipy.stats import chi2
 
 from warpis.analysis.stats import sidak_threshold
@@ -232,9 +241,173 @@ def _window(scene, r: int, technique: str, spec) -> Window:
     return Window(axis, h_max, [_light_cap(scene, r, m) for m in spec[2]])
 
 
-# --------------------------------------------------------------------------- the cases
-
 LIGHTS = tuple(t for t, e in TECHNIQUES.items() if e.light)
+
+
+# --------------------------------------------------------------------------- numpy pdfs
+#
+# Every technique's pdf in float64 numpy, from the scene's arrays alone: the closed forms
+# of the hemisphere techniques and the lobe, and for a light technique the sum over the
+# emitter triangles k that the ray crosses of P(pick k) × the density of ω given k:
+# t²/(A_k |n_k·ω|) for a uniform point on k (light-area, light-power), 1/Ω_k for a
+# uniform direction in k's spherical triangle (light-solid-angle; only triangles that
+# face the receiver are picked, and a ray from the receiver meets those on their front).
+
+
+def _kernel_geometry(scene, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """The receiver and the emitter triangles (E, 3, 3) as the kernels hold them (float32
+    coordinates), in float64: a small sphere light's triangles turn by 5e-5 rad when
+    their corners are rounded to float32, which moves a grazing t²/|cos θ_y| by 1e-4."""
+    p = _shading_point(scene, r).astype(np.float32).astype(np.float64)
+    tris = scene.triangle_vertices(scene.emitters).astype(np.float32).astype(np.float64)
+    return p, tris
+
+
+def _light_pick(scene, r: int, technique: str) -> np.ndarray:
+    """(E,) probability that a light technique picks each emitter triangle at receiver r
+    (all 0 for light-solid-angle when no emitter faces the receiver)."""
+    p, tris = _kernel_geometry(scene, r)
+    area = scene.emitter_areas.astype(np.float64)
+    radiance = scene.emitter_radiance.astype(np.float64)
+    if technique == "light-area":
+        return area / area.sum()
+    if technique == "light-power":
+        return radiance * area / np.sum(radiance * area)
+    if technique == "light-solid-angle":
+        normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+        facing = np.einsum("ij,ij->i", normal, p - tris[:, 0]) > 0.0
+        weight = np.where(facing, triangle_solid_angles(p, tris) * radiance, 0.0)
+        return weight / weight.sum() if weight.sum() > 0.0 else weight
+    raise AssertionError(f"no numpy pdf for light technique {technique!r} in _light_pick/_numpy_light_pdfs")
+
+
+def _numpy_light_pdfs(scene, r: int, w: np.ndarray, only: np.ndarray | None = None):
+    """Every light technique's pdf at unit directions w (K, 3) from receiver r (float64):
+    (dict technique → (K,), (K,) doubtful directions, (K,) number of crossings).  A
+    direction is doubtful where float32 and float64 may disagree: within 1e-6
+    (barycentric) of an emitter edge, or crossing (or nearly) an emitter at a grazing
+    |cos θ_y| < 1e-2, where a float32 evaluation errs by ~1e-7/|cos θ_y| relative.
+    ``only`` (E,) bool: sum over those emitter triangles alone."""
+    p, tris = _kernel_geometry(scene, r)
+    w = _unit(np.asarray(w, dtype=np.float64).reshape(-1, 3))
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    area = 0.5 * np.linalg.norm(normal, axis=1)
+    n_hat = normal / (2.0 * area)[:, None]
+    omega = triangle_solid_angles(p, tris)
+    picks = {t: _light_pick(scene, r, t) for t in LIGHTS}
+    out = {t: np.zeros(len(w)) for t in LIGHTS}
+    doubtful = np.zeros(len(w), dtype=bool)
+    crossings = np.zeros(len(w), dtype=int)
+    meshes = scene.triangle_mesh[scene.emitters]
+    for m in np.unique(meshes):
+        # Only the rays within the emitter mesh's cap can cross it (veach-plates: 4 × 320).
+        axis, h_max = _light_cap(scene, r, int(m))
+        rays = np.flatnonzero(w @ axis > 1.0 - h_max - 1e-9)
+        tri = np.flatnonzero((meshes == m) & (True if only is None else only))
+        for start in range(0, len(rays), 512):
+            i = rays[start:start + 512]
+            t, hit, margin = ray_crossings(p, w[i], tris[tri])
+            cos_light = np.abs(w[i] @ n_hat[tri].T)
+            near = (t > 0.0) & (margin > -1e-3)
+            doubtful[i] |= np.any(near & ((np.abs(margin) < 1e-6) | (cos_light < 1e-2)), axis=1)
+            crossings[i] += hit.sum(axis=1)
+            given_area = np.where(hit, t * t / (area[tri][None, :] * np.where(hit, cos_light, 1.0)), 0.0)
+            given_cone = np.where(hit, 1.0 / omega[tri][None, :], 0.0)
+            for technique in LIGHTS:
+                given = given_cone if technique == "light-solid-angle" else given_area
+                out[technique][i] += given @ picks[technique][tri]
+    return out, doubtful, crossings
+
+
+def _expected_light_pdfs(scene, r: int, w: np.ndarray) -> dict[str, float]:
+    """Light pdfs at one direction w, summed over every crossing, in float64 numpy (a light
+    technique added to the registry needs its line in ``_light_pick``/``_numpy_light_pdfs``:
+    the tests below ask for each)."""
+    pdfs, _, crossings = _numpy_light_pdfs(scene, r, np.asarray(w)[None])
+    return {**{t: float(v[0]) for t, v in pdfs.items()}, "crossings": int(crossings[0])}
+
+
+def _numpy_pdf(scene, r: int, technique: str, w: np.ndarray) -> np.ndarray:
+    """``technique``'s pdf at unit directions w (K, 3) from receiver r, float64 numpy."""
+    w = _unit(np.asarray(w, dtype=np.float64))
+    n = scene.receivers.normals[r]
+    if technique == "uniform":
+        return np.where(w @ n > 0.0, 1.0 / (2.0 * math.pi), 0.0)
+    if technique == "cosine":
+        return np.maximum(w @ n, 0.0) / math.pi
+    if technique == "phong":
+        e = float(scene.receivers.exponent[r])
+        c = w @ _lobe_axis(scene, r)
+        return np.where(c > 0.0, (e + 1.0) / (2.0 * math.pi) * np.maximum(c, 0.0) ** e, 0.0)
+    if technique in LIGHTS:
+        return _numpy_light_pdfs(scene, r, w)[0][technique]
+    raise AssertionError(f"no numpy pdf for technique {technique!r} in _numpy_pdf")
+
+
+def _cap_angle(h_max: float) -> float:
+    return math.acos(1.0 - h_max)
+
+
+def _angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    return 2.0 * math.asin(min(1.0, float(np.linalg.norm(a - b)) / 2.0))
+
+
+def _cap_rule(axis: np.ndarray, h_max: float, n_cos: int = 64, n_phi: int = 128):
+    """Directions and weights for ∫ over the cap {1 − ω·axis < h_max}: Gauss–Legendre in
+    cos θ, periodic trapezoid in φ."""
+    b1, b2, a = orthonormal_frame(axis)
+    x, wx = np.polynomial.legendre.leggauss(n_cos)
+    c = 1.0 - 0.5 * h_max * (x + 1.0)
+    wc = 0.5 * h_max * wx
+    phi = (np.arange(n_phi) + 0.5) * (2.0 * math.pi / n_phi)
+    cc, pp = np.meshgrid(c, phi, indexing="ij")
+    s = np.sqrt(1.0 - cc * cc)
+    d = (s * np.cos(pp))[..., None] * b1 + (s * np.sin(pp))[..., None] * b2 + cc[..., None] * a
+    return d.reshape(-1, 3), (np.repeat(wc[:, None], n_phi, axis=1) * (2.0 * math.pi / n_phi)).ravel()
+
+
+def _cap_mass(scene, r: int, technique: str, axis: np.ndarray, h_max: float) -> float:
+    """The probability that a light technique's direction falls in the cap (axis, h_max),
+    from the numpy pdf: each emitter mesh whose own cap (``_light_cap``) lies inside adds
+    its pick probability, one whose cap is disjoint adds nothing, and one that covers the
+    whole cap (two-lights: the large light behind the small one's cap) adds the
+    Gauss–Legendre integral of its smooth pdf over the cap.  Any other overlap is refused."""
+    pick = _light_pick(scene, r, technique)
+    meshes = scene.triangle_mesh[scene.emitters]
+    theta = _cap_angle(h_max)
+    mass = 0.0
+    for m in np.unique(meshes):
+        axis_m, h_m = _light_cap(scene, r, int(m))
+        between, theta_m = _angle_between(axis, axis_m), _cap_angle(h_m)
+        if between + theta_m <= theta + 1e-9:
+            mass += float(pick[meshes == m].sum())
+        elif between < theta + theta_m:
+            d, weights = _cap_rule(axis, h_max)
+            pdfs, _, crossings = _numpy_light_pdfs(scene, r, d, only=meshes == m)
+            assert np.all(crossings > 0), f"emitter mesh {m} cuts the cap: no exact window mass"
+            mass += float(np.sum(weights * pdfs[technique]))
+    return mass
+
+
+def _window_mass(scene, r: int, technique: str, spec) -> float:
+    """The exact probability that ``technique`` puts a valid sample in the window ``spec``
+    (``_window``): 1 on the plain sphere, 1 − mass for ("lobe", mass) (the lobe's CDF:
+    P(cos α < c) = c^(e+1), and the cap ends at c = mass^(1/(e+1))), and for a light
+    window the numpy mass of its cap minus the caps it excludes (each inside it)."""
+    if spec == "sphere":
+        return 1.0
+    if spec[0] == "lobe":
+        return 1.0 - spec[1]
+    axis, h_max = _light_cap(scene, r, spec[1])
+    mass = _cap_mass(scene, r, technique, axis, h_max)
+    for m in spec[2]:
+        axis_m, h_m = _light_cap(scene, r, m)
+        assert _angle_between(axis, axis_m) + _cap_angle(h_m) <= _cap_angle(h_max)
+        mass -= _cap_mass(scene, r, technique, axis_m, h_m)
+    return mass
+
+
+# --------------------------------------------------------------------------- the cases
 # (scene, receivers, emitter meshes → windows).  Receivers: occluded-quad lit (0) and in
 # umbra (4); heavy-occluder lit (1) and shadowed (5); two-lights right under the
 # small light (1) and beside it (5); veach-plates plate-2 (5, e = 50), in a window on
@@ -346,6 +519,18 @@ def _chi2(scene, r: int, technique: str, spec, seed: int) -> ChiSquareTest:
                          pdf_mismatch_fraction=max(1e-3, 5.0 / max(valid, 1)) if scene.name == "veach-plates" else 1e-4)
 
 
+# Tolerance of the harness's ∫ pdf (``ChiSquareTest.pdf_integral``: jittered quadrature of
+# the pdf over the grid's cells, ires² points per cell, noisy cells refined 4×) against
+# the window's exact mass (``_window_mass``), relative.  Measured over every case: at most
+# 1.2e-4 (veach-plates r5 light-power on the smallest sphere) on grids of 8 × 16 cells and
+# finer, 2.2e-3 and 2.3e-3 on the two 4 × 8 grids (light-area on the smallest sphere of
+# veach-plates, which gets ~1000 valid samples, so its grid is coarse: 18,000 quadrature
+# points over a 1/|cos| pdf).  Tolerances 5e-4 and 5e-3 keep a margin of ≥ 2× over those,
+# and a pdf scaled by 1.01 is off by 1e-2 − (the error) ≥ 7.7e-3 > 5e-3: it fails.
+PDF_INTEGRAL_RTOL = 5e-4
+PDF_INTEGRAL_RTOL_COARSE = 5e-3  # grids with fewer than 8 rows
+
+
 @pytest.mark.parametrize("case", CHI2_CASES, ids=[_case_id(c) for c in CHI2_CASES])
 def test_chi2(scenes, case):
     name, r, technique, spec = case
@@ -356,6 +541,12 @@ def test_chi2(scenes, case):
     assert test.p_value >= THRESHOLD
     if spec == "sphere" and technique not in LIGHTS:
         assert test.invalid_count == 0
+    # The pdf carries exactly the mass of the valid samples in the window (1 on the sphere).
+    mass = _window_mass(scene, r, technique, spec)
+    rtol = PDF_INTEGRAL_RTOL if test.res[0] >= 8 else PDF_INTEGRAL_RTOL_COARSE
+    assert abs(test.pdf_integral - mass) <= rtol * mass, (
+        f"∫ pdf over the window {test.pdf_integral:.7g}, exact mass {mass:.7g}: relative error "
+        f"{(test.pdf_integral - mass) / mass:.3g} > {rtol:g}\n{test.messages}")
 
 
 def test_horizon_quad_straddles_the_horizon(scenes):
@@ -419,17 +610,29 @@ PDF_CASES = [(name, r, tech) for name, receivers, _ in SCENE_CASES for r in rece
                           + tuple(t for t, cases in OWN_CASES.items() if name in {c[0] for c in cases}))]
 
 
+NUMPY_SUBSET = 4000  # of the 200,000 samples per case, held against the numpy pdf
+
+
 @pytest.mark.parametrize(("name", "r", "technique"), PDF_CASES)
 def test_reported_pdf_is_direction_pdf(scenes, name, r, technique):
-    """The pdf a sample reports is ``direction_pdf`` at its direction: to float32
-    rounding, and exactly for light-solid-angle.  Light samples may come back invalid
-    (pdf 0) where the float32 ray towards the sampled point misses it: it slips between
-    two triangles (Möller–Trumbore is not watertight; ~1e-6 of the samples on a quad
-    light), or, on veach-plates's small sphere lights, where rounding the direction to
-    float32 moves the ray by 1e-4 of a triangle, leaves the silhouette.  There a ray
-    that grazes a silhouette or meets an edge can also gain or lose a crossing when the
-    direction moves by an ulp (``direction_pdf`` renormalises it).  Allowed: 1e-5 of
-    the samples (1e-4 on veach-plates) for each."""
+    """The pdf a sample reports equals an independent float64 numpy pdf at its direction
+    (``_numpy_pdf``: the closed forms 1/(2π), cos θ/π, (e+1)/(2π) cos^e α, and for lights
+    the sum over emitter crossings of P(pick) × t²/(A |n_light·ω|) or P(pick)/Ω), on the
+    first 4000 samples: to 1e-4 relative (1e-3 for phong: float32 cos^e α with e up to
+    2000; measured: 3.6e-5 for lights, 2.7e-4 for phong at e = 2000, 7e-7 for cosine);
+    and ``direction_pdf`` at the direction is the reported pdf, on all 200,000: to
+    float32 rounding, and exactly for light-solid-angle.  Left out of the numpy
+    comparison: directions within 1e-6 of the horizon (uniform, cosine: their pdf jumps
+    or vanishes there), and light directions that ``_numpy_light_pdfs`` calls doubtful
+    (near an emitter edge, or grazing one: up to 3% of the samples on veach-plates's
+    sphere lights, whose silhouette band |cos θ_y| < 1e-2 is 1% of their area).  Light samples may come back invalid (pdf 0) where the float32 ray
+    towards the sampled point misses it: it slips between two triangles (Möller–Trumbore
+    is not watertight; ~1e-6 of the samples on a quad light), or, on veach-plates's small
+    sphere lights, where rounding the direction to float32 moves the ray by 1e-4 of a
+    triangle, leaves the silhouette.  There a ray that grazes a silhouette or meets an
+    edge can also gain or lose a crossing when the direction moves by an ulp
+    (``direction_pdf`` renormalises it).  Allowed: 1e-5 of the samples (1e-4 on
+    veach-plates) for each, and as many (at least 2) in the numpy comparison."""
     scene = scenes[name]
     u = np.random.default_rng(_seed(f"{name}{r}{technique}")).random((200_000, 2), dtype=np.float32)
     d, p = sample_directions(scene, r, technique, u)
@@ -444,6 +647,24 @@ def test_reported_pdf_is_direction_pdf(scenes, name, r, technique):
     if technique == "light-solid-angle":
         assert np.array_equal(p[~invalid & ~bad], q[~invalid & ~bad])
     assert np.allclose(np.linalg.norm(d[~invalid], axis=1), 1.0, atol=1e-6)
+
+    # Against numpy, on a subset.
+    sub = slice(0, NUMPY_SUBSET)
+    ds, ps = d[sub].astype(np.float64), p[sub]
+    keep = ps > 0.0
+    if technique in LIGHTS:
+        keep &= ~_numpy_light_pdfs(scene, r, np.where(keep[:, None], ds, [0.0, 0.0, 1.0]))[1]
+    elif technique in ("uniform", "cosine"):
+        keep &= np.abs(ds @ scene.receivers.normals[r]) > 1e-6
+    # Doubtful: the silhouette band |cos θ_y| < 1e-2 is 1% of a sphere light's area.
+    assert np.count_nonzero(~keep) <= max(2, limit, int(0.03 * NUMPY_SUBSET) if name == "veach-plates" else 0)
+    want = _numpy_pdf(scene, r, technique, ds[keep])
+    got = ps[keep]
+    off = np.abs(got - want) > rtol * np.maximum(got, want)
+    if np.any(off):
+        i = int(np.argmax(np.abs(got - want) / np.maximum(want, 1e-300)))
+        raise AssertionError(f"{np.count_nonzero(off)} of {len(got)} reported pdfs differ from numpy by more than "
+                             f"{rtol:g}; worst at ω = {ds[keep][i]}: reported {got[i]!r}, numpy {want[i]!r}")
 
 
 @pytest.mark.parametrize("technique", ["light-solid-angle", "light-area"])
@@ -462,44 +683,6 @@ def test_a_light_sample_that_reaches_the_light_has_a_pdf(scenes, technique):
         f = evaluate_integrand(scene, r, d)
         lost = np.flatnonzero((f > 0) & (p == 0))
         assert len(lost) == 0, f"receiver {r}: {len(lost)} samples reach a light but report pdf 0"
-
-
-def _crossings(p: np.ndarray, w: np.ndarray, tris: np.ndarray):
-    """Möller–Trumbore in float64: distance t, |cos θ_y|, whether the front face is hit,
-    and the emitter index, of every crossing of the ray (p, w) with ``tris``."""
-    e1 = tris[:, 1] - tris[:, 0]
-    e2 = tris[:, 2] - tris[:, 0]
-    pv = np.cross(w, e2)
-    det = np.einsum("ij,ij->i", e1, pv)
-    ok = np.abs(det) > 1e-300
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    tv = p - tris[:, 0]
-    a = np.einsum("ij,ij->i", tv, pv) * inv
-    qv = np.cross(tv, e1)
-    b = (qv @ w) * inv
-    t = np.einsum("ij,ij->i", e2, qv) * inv
-    hit = ok & (a >= 0.0) & (b >= 0.0) & (a + b <= 1.0) & (t > 0.0)
-    nrm = np.cross(e1, e2)
-    cos = np.abs(nrm[hit] @ w) / np.linalg.norm(nrm[hit], axis=1)
-    front = (nrm[hit] @ w) < 0.0
-    return t[hit], cos, front, np.flatnonzero(hit)
-
-
-def _expected_light_pdfs(scene, r: int, w: np.ndarray) -> dict[str, float]:
-    """Light pdfs at direction w summed over every crossing, in float64 numpy (a light
-    technique added to the registry needs its line here: the tests below ask for each)."""
-    p = _shading_point(scene, r)
-    tris = scene.triangle_vertices(scene.emitters)
-    t, cos, front, k = _crossings(p, w, tris)
-    radiance = scene.emitter_radiance[k]
-    table = light_table(scene)
-    total = float(table.total.numpy()[r])
-    return {
-        "light-area": float(np.sum(t * t / cos) / scene.total_emitter_area),
-        "light-power": float(np.sum(radiance * t * t / cos) / scene.total_power),
-        "light-solid-angle": float(np.sum(radiance[front]) / total) if total > 0 else 0.0,
-        "crossings": len(t),
-    }
 
 
 def test_light_pdfs_sum_over_sphere_crossings(scenes):

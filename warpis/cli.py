@@ -11,13 +11,14 @@ that the techniques and patterns it registers (``warpis.register_technique``,
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import runpy
 import sys
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, NoReturn
 
 from . import limits
@@ -204,8 +205,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    import contextlib
-
     from .kernels.estimators import parse_estimator
     from .runs import outdir
     from .runs.verify import DEFAULT_N, summary_lines, verify, write_outputs
@@ -224,9 +223,9 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
         # One lock over verify.json, verify.md and the figures (verify() re-enters it); a folder
         # it creates is removed again if verify() then refuses its arguments.
-        with outdir.locked(out) if out is not None else contextlib.nullcontext():
+        with outdir.locked(out) if out is not None else contextlib.nullcontext(), _runner(args) as runner:
             result = verify(scene, techniques, estimators, n_values, args.trials, args.seed, args.receivers,
-                            args.threads, out, progress)
+                            args.threads, out, progress, runner)
             if out is not None:
                 command = "warpis " + " ".join(sys.argv[1:]) if sys.argv[1:] else f"warpis verify {args.scene}"
                 write_outputs(out, result, command)
@@ -246,7 +245,7 @@ def cmd_study(args: argparse.Namespace) -> int:
 
     out = out_option(args.out)  # before the study is read: an empty --out is not "."
     study = load_study(Path(args.file), threads=args.threads)
-    return _run_study(study, out if out is not None else default_out(study))
+    return _run_study(study, out if out is not None else default_out(study), args)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -255,17 +254,38 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
     out = out_option(args.out)  # an empty --out is an error, not the default folder
     study = demo_study(threads=args.threads)
-    return _run_study(study, out if out is not None else default_out(study))
+    return _run_study(study, out if out is not None else default_out(study), args)
 
 
-def _run_study(study, out) -> int:
+# A local cluster is for trying a cluster on one machine: each worker is a process.
+MAX_LOCAL_WORKERS = 64
+
+
+@contextlib.contextmanager
+def _runner(args: argparse.Namespace) -> Iterator[Any]:
+    """The cluster runner that ``--scheduler``/``--workers`` ask for (closed afterwards),
+    or None: cells then run here.  Dask is imported only when one is given."""
+    if args.scheduler is None and args.workers is None:
+        yield None
+        return
+    if args.scheduler is not None and not args.scheduler.strip():
+        raise WarpisError("--scheduler: must name a scheduler address, e.g. tcp://host:8786")
+    if args.workers is not None and args.workers > MAX_LOCAL_WORKERS:
+        raise WarpisError(f"--workers: at most {MAX_LOCAL_WORKERS} local worker processes (got {args.workers})")
+    from .runs.cluster import connect
+
+    with connect(args.scheduler, args.workers) as runner:
+        yield runner
+
+
+def _run_study(study, out, args: argparse.Namespace) -> int:
     """Run a validated study into ``out`` with a bar of cells done and time left; say where it wrote."""
     from .runs.outdir import locked
     from .runs.study import run_study
 
     # Locked (run_study re-enters the lock) before anything is said: a folder in use or
     # one that cannot be written fails at once, with only its one-line error.
-    with locked(out):
+    with locked(out), _runner(args) as runner:
         cells = len(study.cells())
         print(f"study {study.name}: {cells} cells ({len(study.scenes)} scene(s) × {len(study.estimators)} "
               f"estimator(s) × {len(study.n)} N), {study.trials} trials each, into {out}", flush=True)
@@ -279,7 +299,7 @@ def _run_study(study, out) -> int:
                 bar.bar.write(line, file=sys.stdout)
                 sys.stdout.flush()
 
-            run = run_study(study, out, progress=progress, log=log)
+            run = run_study(study, out, progress=progress, log=log, runner=runner)
     print(f"computed {run.computed} cell(s), skipped {run.skipped} already finished; "
           f"{len(run.rows)} rows in {out / 'results.csv'}")
     print(f"wrote {out / 'report.md'}, {out / 'summary.json'} and {len(run.figures)} figure file(s) in "
@@ -341,6 +361,15 @@ def load_plugin(path: str) -> None:
 
 
 # --------------------------------------------------------------------------- parser
+
+
+def cluster_options(c: argparse.ArgumentParser) -> None:
+    """``--scheduler`` / ``--workers``: measure the cells on a Dask cluster (README, "Running on a cluster")."""
+    g = c.add_mutually_exclusive_group()
+    g.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run the cells on the Dask cluster of this scheduler (tcp://host:port); same results")
+    g.add_argument("--workers", type=_positive, metavar="K",
+                   help="run the cells on a local Dask cluster of K single-threaded worker processes")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -406,6 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated receiver indices (default: all, or 8 spread through the list when more)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
     c.add_argument("--out", help="directory for verify.json, verify.md and figures")
+    cluster_options(c)
     c.set_defaults(func=cmd_verify)
 
     c = sub.add_parser("study", help="run a study file (scenes × estimators × N) into results, figures and a report; "
@@ -416,6 +446,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("file", help="the study TOML (see README, 'Studies')")
     c.add_argument("--out", help="output directory (default ./warpis-out/<name>/)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: the study's, else all cores)")
+    cluster_options(c)
     c.set_defaults(func=cmd_study)
 
     c = sub.add_parser("demo", help="the main job: ten estimators on occluded-quad, variance against N, "
@@ -424,6 +455,7 @@ def build_parser() -> argparse.ArgumentParser:
                        parents=[plugin])
     c.add_argument("--out", help="output directory (default ./warpis-out/demo/)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
+    cluster_options(c)
     c.set_defaults(func=cmd_demo)
     return p
 

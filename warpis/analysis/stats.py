@@ -17,6 +17,7 @@ scipy.special, while scipy.stats would add about 0.4 s to every CLI start.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -219,6 +220,18 @@ class SampleMoments:
               + 6.0 * dn * dn * (na * na * other.m2 + nb * nb * self.m2)
               + 4.0 * dn * (na * other.m3 - nb * self.m3))
         return SampleMoments(count=self.count + other.count, mean=self.mean + nb * dn, m2=m2, m3=m3, m4=m4)
+
+    @staticmethod
+    def merged(blocks: Sequence[SampleMoments]) -> SampleMoments:
+        """Consecutive blocks merged left to right, ((b0 + b1) + b2) + …: the order
+        :func:`warpis.kernels.engine.run_moments` merges in, so the same blocks give the
+        same bits wherever they were computed."""
+        if not blocks:
+            raise ValueError("no blocks to merge")
+        total = blocks[0]
+        for block in blocks[1:]:
+            total = total.merge(block)
+        return total
 
     def interval(self, level: float = 0.95) -> VarianceEstimate:
         """Mean, stderr, s², se(s²) and the fourth-moment interval, as :func:`variance_interval`.

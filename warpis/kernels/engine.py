@@ -88,6 +88,7 @@ class _Job:
     tail: tuple  # kernel inputs between the trial offset and the output
     upload: DeviceScene  # owns the mesh and BVH that head's struct knows by id only
     kernel: Any  # the trial kernel (the built-in one unless user techniques are registered)
+    first: int = 0  # the first trial to run: trials first..trials−1 (a cluster task runs a range)
 
     def launch(self, start: int, count: int, buf: wp.array) -> None:
         """Trials start..start+count−1 of every receiver into columns 0..count−1 of ``buf``."""
@@ -96,7 +97,7 @@ class _Job:
 
 
 def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed: int,
-             receivers: Sequence[int] | None) -> _Job:
+             receivers: Sequence[int] | None, first: int = 0) -> _Job:
     """Validate the arguments (nothing truncated or wrapped) and upload the kernel inputs."""
     est = parse_estimator(estimator)
     n = limits.count(n, "n")
@@ -109,7 +110,7 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     head = (up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
     tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols)
-    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry())
+    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry(), first)
 
 
 def _chunk_size(job: _Job, chunk: int | None, workers: int) -> int:
@@ -122,9 +123,9 @@ def _chunk_size(job: _Job, chunk: int | None, workers: int) -> int:
         # Big enough to amortise a launch, small enough for every thread to get many
         # chunks (the last chunks then finish together).
         by_work = CHUNK_EVALUATIONS // max(1, job.rows * job.n)
-        chunk = max(1, min(by_work, -(-job.trials // (CHUNKS_PER_THREAD * workers))))
+        chunk = max(1, min(by_work, -(-(job.trials - job.first) // (CHUNKS_PER_THREAD * workers))))
     cap = max(1, MAX_BUFFER_BYTES // (8 * job.rows))
-    return min(limits.count(chunk, "chunk"), job.trials, cap)
+    return min(limits.count(chunk, "chunk"), job.trials - job.first, cap)
 
 
 def _drive(job: _Job, work: Callable[[int, np.ndarray], T], finish: Callable[[int, int, T], None],
@@ -163,9 +164,9 @@ def _drive(job: _Job, work: Callable[[int, np.ndarray], T], finish: Callable[[in
         finish(start, count, result)
         done += count
         if progress is not None:
-            progress(done, job.trials)
+            progress(done, job.trials - job.first)
 
-    starts = range(0, job.trials, size)
+    starts = range(job.first, job.trials, size)
     if not wp.get_device(job.device).is_cpu:  # GPU launches are asynchronous: one thread feeds them
         for start in starts:
             record(start, task(start))
@@ -220,11 +221,12 @@ class _BlockReducer:
     waiting blocks, bounded by the chunks in flight.
     """
 
-    def __init__(self, rows: int, trials: int):
+    def __init__(self, rows: int, trials: int, first_block: int = 0):
         self.rows, self.trials = rows, trials
         self.partial: dict[int, tuple[np.ndarray, int]] = {}  # block → (values, trials arrived)
         self.waiting: dict[int, SampleMoments] = {}  # reduced blocks with an unmerged predecessor
-        self.next = 0  # the first block not yet merged
+        self.next = first_block  # the first block not yet merged
+        self.blocks: list[SampleMoments] = []  # every block's own moments, in trial order
         self.total: SampleMoments | None = None
 
     def split(self, start: int, values: np.ndarray) -> list[_Piece]:
@@ -255,6 +257,7 @@ class _BlockReducer:
                 self.waiting[block] = SampleMoments.of(buf)
         while self.next in self.waiting:
             block_moments = self.waiting.pop(self.next)
+            self.blocks.append(block_moments)
             self.total = block_moments if self.total is None else self.total.merge(block_moments)
             self.next += 1
 
@@ -348,3 +351,39 @@ def run_moments(
     _drive(job, reducer.split, reducer.add, threads, chunk, progress)
     assert reducer.total is not None and not reducer.partial and not reducer.waiting
     return reducer.total
+
+
+def block_count(trials: int) -> int:
+    """The reduction blocks of ``trials`` trials: block b holds trials b·BLOCK … min((b+1)·BLOCK, trials) − 1."""
+    return -(-trials // BLOCK)
+
+
+def run_block_moments(
+    scene: Scene,
+    estimator: str | Estimator,
+    n: int,
+    trials: int,
+    seed: int = 0,
+    receivers: Sequence[int] | None = None,
+    blocks: range | None = None,
+    threads: int | None = None,
+    chunk: int | None = None,
+    progress: Progress | None = None,
+) -> list[SampleMoments]:
+    """The moments of each reduction block in ``blocks`` (default: all) of a run of
+    ``trials`` trials, in trial order: the pieces :func:`run_moments` merges.
+
+    ``SampleMoments.merged`` of the blocks of every range, concatenated in order, is
+    ``run_moments(...)`` bit for bit, wherever each range ran: this is the unit of work
+    a cluster distributes.  Takes the other arguments of :func:`run_trials`.
+    """
+    count = block_count(limits.count(trials, "trials"))
+    blocks = range(count) if blocks is None else blocks
+    if blocks.step != 1 or not 0 <= blocks.start < blocks.stop <= count:
+        raise WarpisError(f"blocks must be a non-empty range within 0..{count} (got {blocks})")
+    first = blocks.start * BLOCK
+    job = _prepare(scene, estimator, n, min(blocks.stop * BLOCK, trials), seed, receivers, first)
+    reducer = _BlockReducer(job.rows, trials, blocks.start)
+    _drive(job, reducer.split, reducer.add, threads, chunk, progress)
+    assert not reducer.partial and not reducer.waiting and len(reducer.blocks) == len(blocks)
+    return reducer.blocks

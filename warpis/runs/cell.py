@@ -23,18 +23,18 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from scipy.special import ndtri
 
 from ..analysis.reference import Reference, reference
-from ..analysis.stats import variance_interval
+from ..analysis.stats import VarianceEstimate
 from ..analysis.theory import BOUNDS, Estimate, Moments, moments, predictions
 from ..errors import WarpisError
-from ..kernels.engine import run_trials
+from ..kernels.engine import run_moments
 from ..kernels.estimators import Estimator
 from ..scenes import Scene
 
@@ -176,22 +176,71 @@ def measure_cell(scene: Scene, receivers: Sequence[int], estimator: Estimator, n
 
     References (and, with ``predict``, moments) come from ``cache``, so the cells of a run
     compute each once.  ``seconds`` counts everything this call did, cache fills included.
+    The trials are reduced to moments in blocks (``run_moments``): a cluster that runs the
+    blocks elsewhere and merges them in order (``runs.cluster``) gets the same bits.
     """
     check_trials(trials, "trials")
     start = time.perf_counter()
     rx = [int(r) for r in receivers]
-    stats = variance_interval(run_trials(scene, estimator, n, trials, seed=seed, receivers=receivers,
-                                         threads=threads), level=LEVEL)
+    stats = run_moments(scene, estimator, n, trials, seed=seed, receivers=rx, threads=threads).interval(LEVEL)
     refs = cache.reference(scene, rx)
+    mom = {r: cache.moments_of(scene, r, estimator.techniques) for r in rx} if predict else None
+    rows = score_cell(scene, rx, estimator, n, trials, seed, stats, refs, mom)
+    return MeasuredCell(rows, time.perf_counter() - start)
+
+
+def score_cell(scene: Scene, receivers: Sequence[int], estimator: Estimator, n: int, trials: int, seed: int,
+               stats: VarianceEstimate, refs: Mapping[int, Reference],
+               moments: Mapping[int, Moments] | None) -> list[Row]:
+    """The rows of a measured cell: its trial statistics (row i for ``receivers[i]``), each
+    receiver's reference and, given its moments, every prediction with its z and verdict."""
     rows = []
-    for i, r in enumerate(rx):
+    for i, r in enumerate(int(r) for r in receivers):
         row = Row(scene.name, r, estimator.spec, n, trials, seed, float(stats.mean[i]), float(stats.mean_stderr[i]),
                   refs[r].value, refs[r].stderr, float(stats.variance[i]), float(stats.variance_stderr[i]),
                   float(stats.lo[i]), float(stats.hi[i]))
-        if predict:
-            _predict(row, scene, estimator, cache.moments_of(scene, r, estimator.techniques))
+        if moments is not None:
+            _predict(row, scene, estimator, moments[r])
         rows.append(row)
-    return MeasuredCell(rows, time.perf_counter() - start)
+    return rows
+
+
+# --------------------------------------------------------------------------- runners
+
+
+@dataclass(frozen=True)
+class CellJob:
+    """One cell to measure, as plain data (a Scene pickles): what a runner takes."""
+
+    scene: Scene
+    receivers: tuple[int, ...]
+    estimator: Estimator
+    n: int
+    trials: int
+    seed: int
+    predict: bool = True
+
+
+class Runner(Protocol):
+    """Measures cells: yields ``(index into jobs, MeasuredCell)`` as each finishes."""
+
+    def measure(self, jobs: Sequence[CellJob]) -> Iterator[tuple[int, MeasuredCell]]: ...
+
+
+class LocalRunner:
+    """Measures cells one after another in this process (``threads`` CPU threads per
+    launch), sharing references and moments between them.  A runner's ``measure(jobs)``
+    yields ``(index, MeasuredCell)`` as cells finish, in any order; ``runs.cluster``
+    has the other one."""
+
+    def __init__(self, threads: int | None = None):
+        self.threads = threads
+        self.cache = RunCache()
+
+    def measure(self, jobs: Sequence[CellJob]) -> Iterator[tuple[int, MeasuredCell]]:
+        for i, job in enumerate(jobs):
+            yield i, measure_cell(job.scene, job.receivers, job.estimator, job.n, job.trials, job.seed, self.cache,
+                                  predict=job.predict, threads=self.threads)
 
 
 def _predict(row: Row, scene: Scene, est: Estimator, mom: Moments) -> None:

@@ -48,7 +48,7 @@ from ..kernels.estimators import Estimator, parse_estimator
 from ..scenes import Scene, load_scene, read_toml, resolve_scene_path
 from ..vocabulary import expected_slope as registry_slope
 from . import outdir
-from .cell import MIN_TRIALS, Row, RunCache, inside, measure_cell, summarize
+from .cell import MIN_TRIALS, CellJob, LocalRunner, MeasuredCell, Row, Runner, inside, summarize
 
 STUDY_KEYS = ("name", "description", "seed", "trials", "n", "scenes", "estimators", "receivers", "predictions",
               "outputs", "threads")
@@ -339,7 +339,7 @@ def _parse(text: str) -> float | None:
     return float(text) if text != "" else None
 
 
-# Columns every row written by compute_cell fills (predictions and z may be empty).
+# Columns every row written by csv_rows fills (predictions and z may be empty).
 REQUIRED = ("scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mean_stderr", "reference",
             "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi", "seconds",
             "warpis_version", "cell")
@@ -348,7 +348,7 @@ REQUIRED = ("scene", "receiver", "estimator", "n", "trials", "seed", "mean", "me
 def typed_row(raw: list[str]) -> dict[str, Any]:
     """A CSV row (strings) → a dict of numbers, with ``predictions``/``z``/``inside`` as in verify.json.
 
-    ValueError for a row compute_cell cannot have written (damaged on disk): wrong column
+    ValueError for a row csv_rows cannot have written (damaged on disk): wrong column
     count, an empty required field, a field that is not a number, a malformed cell key.
     """
     if len(raw) != len(HEADER):
@@ -375,11 +375,15 @@ def typed_row(raw: list[str]) -> dict[str, Any]:
     return row
 
 
-def compute_cell(study: Study, cell: Cell, cache: RunCache) -> list[list[str]]:
-    """Run one cell through the shared pipeline (:func:`warpis.runs.cell.measure_cell`) → CSV rows (strings)."""
+def cell_job(study: Study, cell: Cell) -> CellJob:
+    """What a runner needs to measure ``cell`` (:func:`warpis.runs.cell.measure_cell`)."""
     s = cell.scene
-    measured = measure_cell(s.scene, s.receivers, cell.estimator, cell.n, study.trials, study.seed, cache,
-                            predict=study.predictions, threads=study.threads)
+    return CellJob(s.scene, tuple(int(r) for r in s.receivers), cell.estimator, cell.n, study.trials, study.seed,
+                   study.predictions)
+
+
+def csv_rows(cell: Cell, measured: MeasuredCell) -> list[list[str]]:
+    """A measured cell → its CSV rows (strings)."""
     seconds = f"{measured.seconds:.3f}"
     return [csv_row(row) + [seconds, _version(), cell.key] for row in measured.rows]
 
@@ -581,7 +585,7 @@ class StudyRun:
 
 
 def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | None = None,
-              log: Callable[[str], None] | None = None) -> StudyRun:
+              log: Callable[[str], None] | None = None, runner: Runner | None = None) -> StudyRun:
     """Run every unfinished cell of ``study`` into ``out``; then figures and report.md.
 
     ``progress(done, total)`` counts the cells this run computes; ``log`` receives one-line
@@ -589,13 +593,15 @@ def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | No
     for the whole run (:func:`warpis.runs.outdir.locked`): a second run on it fails at once,
     so no run ever rewrites results.csv without rows the other one finished.  A file that
     cannot be written is a one-line WarpisError; the files already there stay intact.
+    ``runner`` measures the cells (default: :class:`~warpis.runs.cell.LocalRunner`; a
+    Dask cluster: :func:`warpis.runs.cluster.connect`); the files do not depend on it.
     """
     with outdir.locked(Path(out)) as out:
-        return _run_locked(study, out, progress, log or (lambda line: None))
+        return _run_locked(study, out, progress, log or (lambda line: None), runner)
 
 
 def _run_locked(study: Study, out: Path, progress: Callable[[int, int], None] | None,
-                log: Callable[[str], None]) -> StudyRun:
+                log: Callable[[str], None], runner: Runner | None) -> StudyRun:
     cells = study.cells()
     done, dropped = _resume(study, cells, out / "results.csv", log)
     todo = [c for c in cells if c.key not in done]
@@ -603,12 +609,12 @@ def _run_locked(study: Study, out: Path, progress: Callable[[int, int], None] | 
     write_results(out, study, cells, done, typed)
     if progress is not None:
         progress(0, len(todo))
-    cache = RunCache()  # references and moments, shared by this run's cells
-    for i, cell in enumerate(todo):
-        done[cell.key] = compute_cell(study, cell, cache)
-        write_results(out, study, cells, done, typed)
+    runner = runner or LocalRunner(study.threads)
+    for finished, (i, measured) in enumerate(runner.measure([cell_job(study, c) for c in todo]), start=1):
+        done[todo[i].key] = csv_rows(todo[i], measured)
+        write_results(out, study, cells, done, typed)  # canonical order, whatever order cells finish in
         if progress is not None:
-            progress(i + 1, len(todo))
+            progress(finished, len(todo))
     rows = [r for c in cells for r in typed[c.key]]
     run = StudyRun(out, len(cells), len(cells) - len(todo), len(todo), dropped, rows)
     # Figures first, then the report that links them, then stale figures: a kill at any

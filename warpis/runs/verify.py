@@ -28,7 +28,7 @@ from ..kernels.integrand import MATERIALS
 from ..kernels.patterns import PATTERNS
 from ..scenes import Scene
 from . import outdir
-from .cell import Row, RunCache, check_trials, measure_cell, summarize
+from .cell import CellJob, LocalRunner, Row, Runner, check_trials, summarize
 
 DEFAULT_N = (4, 16, 64, 256, 1024)
 DEFAULT_TRIALS = 400
@@ -98,11 +98,14 @@ def verify(
     threads: int | None = None,
     out: Path | None = None,
     progress: Callable[[int, int], None] | None = None,
+    runner: Runner | None = None,
 ) -> VerifyResult:
     """Measure and predict every cell; write ``out/verify.json`` as cells finish (if ``out``).
 
     ``out`` is locked (:func:`warpis.runs.outdir.locked`) once the arguments have been checked,
     so bad input creates no folder and two runs never write one folder together.
+    ``runner`` measures the cells (default: here, with ``threads``; a Dask cluster:
+    :func:`warpis.runs.cluster.connect`); the result does not depend on it.
     """
     techs = tuple(techniques) if techniques else default_techniques(scene)
     ests = [parse_estimator(e) for e in estimators] if estimators else default_estimators(techs)
@@ -112,26 +115,25 @@ def verify(
     check_trials(trials)
     rx = select_receivers(scene, receivers if receivers is not None else default_receivers(scene))
     with outdir.locked(out) if out is not None else contextlib.nullcontext():
-        return _measure(scene, techs, ests, n_values, trials, seed, rx, threads, out, progress)
+        return _measure(scene, techs, ests, n_values, trials, seed, rx, threads, out, progress, runner)
 
 
 def _measure(scene: Scene, techs: tuple[str, ...], ests: list[Estimator], n_values: Sequence[int], trials: int,
              seed: int, rx: np.ndarray, threads: int | None, out: Path | None,
-             progress: Callable[[int, int], None] | None) -> VerifyResult:
+             progress: Callable[[int, int], None] | None, runner: Runner | None) -> VerifyResult:
     start = time.perf_counter()
-    cache = RunCache()  # references and moments, shared by the cells of this run
     result = VerifyResult(scene.name, trials, seed, techs)
-    total, done = len(ests) * len(n_values), 0
-    for est in ests:
-        for n in n_values:
-            cell = measure_cell(scene, rx, est, n, trials, seed, cache, threads=threads)
-            result.rows += [json_row(row) for row in cell.rows]
-            done += 1
-            result.seconds = time.perf_counter() - start
-            if out is not None:
-                write_json(out, result)
-            if progress is not None:
-                progress(done, total)
+    receivers = tuple(int(r) for r in rx)
+    jobs = [CellJob(scene, receivers, est, n, trials, seed) for est in ests for n in n_values]
+    finished: dict[int, list[dict]] = {}
+    for done, (i, cell) in enumerate((runner or LocalRunner(threads)).measure(jobs), start=1):
+        finished[i] = [json_row(row) for row in cell.rows]
+        result.rows = [row for j in sorted(finished) for row in finished[j]]  # estimator × N order
+        result.seconds = time.perf_counter() - start
+        if out is not None:
+            write_json(out, result)
+        if progress is not None:
+            progress(done, len(jobs))
     return result
 
 

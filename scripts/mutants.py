@@ -1,0 +1,300 @@
+"""Mutation check: plant known, physically meaningful bugs one at a time; the suite must catch each.
+
+Each mutant names a function of warpis (or of its tests' subjects) and a unique expression
+inside it — a stable anchor, not a line number — and what to put in its place.  The
+script copies the project into a temporary folder, plants one mutant there, runs only the
+test files that should catch it (``pytest -x``, so it stops at the first failure) with
+that copy first on ``PYTHONPATH``, restores the file, and goes on.
+
+A mutant is *killed* when a test fails; it *survives* when the tests pass.  The script
+exits 1 when any mutant survives, when an anchor is no longer found exactly once (a
+refactor moved it: update the mutant), or when the unmutated copy already fails the
+selected tests (a kill would then prove nothing).  A mutant that breaks the build (a
+collection error, a kernel that does not compile) is reported as *broken*, also exit 1:
+it proves nothing either.
+
+    python scripts/mutants.py                 # every mutant (about 15–25 minutes on 2 cores)
+    python scripts/mutants.py --list          # names and bugs
+    python scripts/mutants.py balance-plus-one trials-share-a-stream
+    python scripts/mutants.py --markdown      # the result table as Markdown (README, notes)
+
+Not part of CI: it recompiles Warp kernels for most mutants.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+COPIED = ("warpis", "tests", "scripts", "meshes", "docs", "pyproject.toml", "README.md")
+
+
+@dataclass(frozen=True)
+class Mutant:
+    name: str
+    bug: str  # what it plants, in words
+    file: str  # relative to the repository root
+    function: str  # the def whose body holds the anchor (nested defs count)
+    old: str  # occurs exactly once in that function
+    new: str
+    tests: tuple[str, ...]  # test files (or node ids) that must catch it
+
+
+K = "warpis/kernels/"
+MUTANTS: tuple[Mutant, ...] = (
+    # ------------------------------------------------------------------ combiners (estimators.py)
+    Mutant("balance-plus-one", "balance divides its sum by m·N_g + 1", K + "estimators.py", "stratified_trial",
+           "return total / wp.float64(m * n_g)", "return total / wp.float64(m * n_g + 1)",
+           ("tests/test_estimators.py",)),
+    Mutant("power-as-balance", "the power heuristic becomes balance (exponent 1; still unbiased)",
+           K + "estimators.py", "stratified_trial",
+           "wp.float64(f * pdf / other_pdfs(techs, k, pdf, scene, table, sp, w, 2))",
+           "wp.float64(f / other_pdfs(techs, k, pdf, scene, table, sp, w, 1))",
+           ("tests/test_theory.py",)),
+    Mutant("single-weight-off", "single IS weights f/(1.02·g)", K + "estimators.py", "stratified_trial",
+           "total = total + wp.float64(f / pdf)", "total = total + wp.float64(f / (1.02 * pdf))",
+           ("tests/test_estimators.py",)),
+    Mutant("mixture-pick-reuses-stream", "the mixture picks its technique from the sample's own stream",
+           K + "estimators.py", "mixture_trial",
+           "k = wp.min(wp.int32(uniform(s_pick, i, 0) * float(n_g)), n_g - 1)",
+           "k = wp.min(wp.int32(uniform(s, i, 0) * float(n_g)), n_g - 1)",
+           ("tests/test_estimators.py",)),
+    Mutant("biased-divides-by-pdf", "biased IS weights f/g (becomes unbiased IS, converges to F, not ∫ f g)",
+           K + "estimators.py", "stratified_trial",
+           "total = total + wp.float64(f)\n",
+           "total = total + wp.float64(f / technique_pdf(techs[k], scene, table, sp, w))\n",
+           ("tests/test_theory.py", "tests/test_estimators.py")),
+    Mutant("trials-share-a-stream", "consecutive trials share one random stream (trial → trial // 2)",
+           K + "estimators.py", "stratified_trial",
+           "s = stream(seed, sp.receiver, trial, k)", "s = stream(seed, sp.receiver, trial / 2, k)",
+           ("tests/test_rng.py",)),
+    # ------------------------------------------------------------------ patterns (patterns.py)
+    Mutant("jittered-lower-half", "jittered points only in the lower half of each cell", K + "patterns.py",
+           "jittered_point", "y = (float(r) + uniform(s, cell, 1)) / float(rows)",
+           "y = (float(r) + 0.5 * uniform(s, cell, 1)) / float(rows)", ("tests/test_estimators.py",)),
+    Mutant("independent-on-diagonal", "independent points reuse one coordinate (u on the diagonal)",
+           K + "patterns.py", "pattern_point", "return wp.vec2(uniform(s, i, 0), uniform(s, i, 1))",
+           "return wp.vec2(uniform(s, i, 0), uniform(s, i, 0))", ("tests/test_estimators.py",)),
+    Mutant("antithetic-without-reflection", "antithetic pairs repeat u instead of reflecting it (still unbiased)",
+           K + "patterns.py", "pattern_point", "            return reflect(u)\n", "            return u\n",
+           ("tests/test_theory.py",)),
+    Mutant("jittered-antithetic-wrong-mirror", "jittered-antithetic reflects the point of its own cell",
+           K + "patterns.py", "pattern_point", "return reflect(jittered_point(s, m - 1 - i, rows, cols))",
+           "return reflect(jittered_point(s, i, rows, cols))", ("tests/test_estimators.py",)),
+    Mutant("jittered-theory-strips", "the theory lays jittered cells as 1 × m strips, the kernel as a grid",
+           K + "patterns.py", "_cells", "return Blocks(m, 1, grid_shape(m), False)",
+           "return Blocks(m, 1, (1, m), False)", ("tests/test_theory.py",)),
+    Mutant("user-pattern-not-dispatched", "a registered pattern's code falls through to the built-in branches",
+           K + "patterns.py", "_with_user_point", "return user_point(s, i, m)",
+           "return inner(pattern, s, i, m, rows, cols)", ("tests/test_user_pattern.py",)),
+    # ------------------------------------------------------------------ techniques (warps.py, techniques.py)
+    Mutant("uniform-pdf-constant", "uniform hemisphere pdf 1.01/(2π)", K + "warps.py", "uniform_hemisphere_pdf",
+           "INV_2PI, 0.0)", "INV_2PI * 1.01, 0.0)", ("tests/test_pdf_integrals.py",)),
+    Mutant("cosine-pdf-constant", "cosine pdf × 1.01", K + "warps.py", "cosine_hemisphere_pdf",
+           "return wp.max(cos_theta, 0.0) * INV_PI", "return wp.max(cos_theta, 0.0) * INV_PI * 1.01",
+           ("tests/test_pdf_integrals.py",)),
+    Mutant("phong-pdf-normalisation", "Phong lobe pdf (e+2)/(2π) instead of (e+1)/(2π)", K + "warps.py",
+           "phong_lobe_pdf", "(exponent + 1.0) * INV_2PI", "(exponent + 2.0) * INV_2PI",
+           ("tests/test_pdf_integrals.py",)),
+    Mutant("light-pdf-without-r2", "light pdf without the distance squared", K + "techniques.py", "light_pdf",
+           "pdf = pdf + area_density * t * t / cos_y", "pdf = pdf + area_density / cos_y",
+           ("tests/test_light_pdf.py",)),
+    Mutant("light-pdf-receiver-cosine", "light pdf with the receiver's cosine instead of the light's",
+           K + "techniques.py", "light_pdf", "cos_y = wp.max(wp.abs(wp.dot(wp.normalize(nrm), w)), 1.0e-12)",
+           "cos_y = wp.max(wp.abs(wp.dot(sp.n, w)), 1.0e-12)",
+           ("tests/test_light_pdf.py", "tests/test_baseline.py")),
+    Mutant("light-area-forgets-pick", "light-area density 1/A_triangle (the triangle's pick probability lost)",
+           K + "techniques.py", "light_pdf", "area_density = 1.0 / scene.total_area",
+           "area_density = 2.0 / wp.length(nrm)", ("tests/test_light_pdf.py",)),
+    Mutant("light-power-picks-by-area", "light-power's pdf picks triangles by area while sampling by power",
+           K + "techniques.py", "light_pdf", "area_density = radiance / scene.total_power",
+           "area_density = 1.0 / scene.total_area", ("tests/test_light_pdf.py",)),
+    Mutant("light-solid-angle-ignores-radiance", "light-solid-angle's pdf forgets the radiance of the pick",
+           K + "techniques.py", "light_pdf", "pdf = pdf + radiance / float(table.total[sp.receiver])",
+           "pdf = pdf + 1.0 / float(table.total[sp.receiver])",
+           ("tests/test_light_pdf.py",)),
+    # ------------------------------------------------------------------ materials (integrand.py)
+    Mutant("phong-brdf-normalisation", "Phong BRDF (e+1)/(2π) instead of (e+2)/(2π)", K + "integrand.py", "brdf",
+           "sp.albedo * (sp.exponent + 2.0) * INV_2PI", "sp.albedo * (sp.exponent + 1.0) * INV_2PI",
+           ("tests/test_materials.py",)),
+    Mutant("lambert-ignores-albedo", "Lambert ρ = 1/π whatever the albedo", K + "integrand.py", "brdf",
+           "return sp.albedo * INV_PI", "return INV_PI", ("tests/test_materials.py",)),
+    Mutant("irradiance-over-pi", "the irradiance material ρ = 1/π instead of 1", K + "integrand.py", "brdf",
+           "    return 1.0\n", "    return INV_PI\n", ("tests/test_materials.py",)),
+    # ------------------------------------------------------------------ random numbers (rng.py)
+    Mutant("rng-chain-drops-shift", "the Warp generator's chain loses its h << 8 term (the twin keeps it)",
+           K + "rng.py", "chain", "return mix32(h ^ (wp.uint32(value) + _GOLDEN + (h << _S8)))",
+           "return mix32(h ^ (wp.uint32(value) + _GOLDEN))", ("tests/test_rng.py",)),
+    # ------------------------------------------------------------------ analysis
+    Mutant("eq14-printed-without-ng2", "printed eq. 14 without the 1/N_g² on ΣJ²", "warpis/analysis/theory.py",
+           "_eq14_printed", "stratum_integrals(c.scene, c.receiver, c.est.techniques, m) / n_g",
+           "stratum_integrals(c.scene, c.receiver, c.est.techniques, m)", ("tests/test_theory.py",)),
+    Mutant("interval-se-narrow", "the variance interval's se × 0.9", "warpis/analysis/stats.py", "_interval",
+           "se = np.sqrt(np.maximum(var_s2, 0.0))", "se = 0.9 * np.sqrt(np.maximum(var_s2, 0.0))",
+           ("tests/test_stats.py",)),
+    Mutant("interval-normal-theory", "the variance interval assumes normal estimates (μ4 = 3σ⁴)",
+           "warpis/analysis/stats.py", "_interval", "var_s2 = (m4 - s2 * s2 * (m - 3) / (m - 1)) / m",
+           "var_s2 = 2 * s2 * s2 / (m - 1)", ("tests/test_stats.py",)),
+    Mutant("reference-stderr-halved", "quadrature references report half their standard error",
+           "warpis/analysis/reference.py", "_run", "float(row.std(ddof=1) / math.sqrt(replicas))",
+           "float(0.5 * row.std(ddof=1) / math.sqrt(replicas))", ("tests/test_reference_precision.py",)),
+    # ------------------------------------------------------------------ runs
+    Mutant("inside-band-widened", "verify's inside band 3 × 1.96", "warpis/runs/cell.py", "inside",
+           "return bool(abs(z) <= Z95)", "return bool(abs(z) <= 3 * Z95)", ("tests/test_verify_verdicts.py",)),
+    Mutant("resume-drops-last-row", "resume drops the last finished row of each cell", "warpis/runs/study.py",
+           "_resume", "done = {c.key: previous[c.key] for c in cells", "done = {c.key: previous[c.key][:-1] for c in cells",
+           ("tests/test_study.py",)),
+)
+
+
+class AnchorError(Exception):
+    pass
+
+
+def plant(text: str, mutant: Mutant) -> str:
+    """``text`` (the file) with the mutant's anchor replaced, or AnchorError."""
+    defs = [n for n in ast.walk(ast.parse(text)) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))
+            and n.name == mutant.function]
+    if len(defs) != 1:
+        raise AnchorError(f"{mutant.file}: {len(defs)} functions named {mutant.function!r} (expected 1)")
+    lines = text.splitlines(keepends=True)
+    start, end = defs[0].lineno - 1, defs[0].end_lineno
+    body = "".join(lines[start:end])
+    count = body.count(mutant.old)
+    if count != 1:
+        raise AnchorError(f"{mutant.file}: {mutant.function}: {mutant.old!r} found {count} times (expected 1)")
+    return "".join(lines[:start]) + body.replace(mutant.old, mutant.new) + "".join(lines[end:])
+
+
+@dataclass
+class Outcome:
+    mutant: Mutant
+    verdict: str  # killed, survived, broken, anchor-lost
+    test: str  # the first failing test (killed), else a note
+    seconds: float
+
+
+def run_tests(copy: Path, tests: tuple[str, ...], timeout: float) -> tuple[int, str]:
+    env = dict(os.environ, PYTHONPATH=str(copy), PYTHONDONTWRITEBYTECODE="1")
+    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-rfE", *tests]
+    try:
+        proc = subprocess.run(cmd, cwd=copy, env=env, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return -1, "timed out"
+    return proc.returncode, proc.stdout + proc.stderr
+
+
+def judge(mutant: Mutant, status: int, output: str, seconds: float) -> Outcome:
+    failed = re.findall(r"^FAILED (\S+)", output, re.M)
+    errors = re.findall(r"^ERROR (\S+)", output, re.M)
+    if status == 1 and failed:
+        return Outcome(mutant, "killed", failed[0], seconds)
+    if status == 0:
+        return Outcome(mutant, "survived", "every selected test passed", seconds)
+    note = errors[0] if errors else ("timed out" if status == -1 else f"pytest exit status {status}")
+    return Outcome(mutant, "broken", note, seconds)
+
+
+def make_copy() -> Path:
+    copy = Path(tempfile.mkdtemp(prefix="warpis-mutants-"))
+    for name in COPIED:
+        src = ROOT / name
+        if src.is_dir():
+            shutil.copytree(src, copy / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        elif src.exists():
+            shutil.copy2(src, copy / name)
+    return copy
+
+
+def check_import(copy: Path) -> None:
+    """The copy, not an installed warpis, must be the one the tests import."""
+    env = dict(os.environ, PYTHONPATH=str(copy))
+    where = subprocess.run([sys.executable, "-c", "import warpis; print(warpis.__file__)"], cwd=copy, env=env,
+                           capture_output=True, text=True, check=True).stdout.strip()
+    if not Path(where).resolve().is_relative_to(copy.resolve()):
+        raise SystemExit(f"mutants: the tests would import {where}, not the mutated copy in {copy}")
+
+
+def markdown(outcomes: list[Outcome], total: float) -> str:
+    lines = ["| mutant | bug | verdict | caught by | seconds |", "| --- | --- | --- | --- | --- |"]
+    lines += [f"| `{o.mutant.name}` | {o.mutant.bug} | {o.verdict} | `{o.test}` | {o.seconds:.0f} |" for o in outcomes]
+    killed = sum(o.verdict == "killed" for o in outcomes)
+    lines.append(f"\n{killed} of {len(outcomes)} killed in {total / 60:.1f} minutes.")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("names", nargs="*", help="mutants to run (default: all)")
+    p.add_argument("--list", action="store_true", help="list the mutants and exit")
+    p.add_argument("--markdown", action="store_true", help="print the result table as Markdown")
+    p.add_argument("--timeout", type=float, default=900, help="seconds per mutant's test run (default 900)")
+    p.add_argument("--no-clean-check", action="store_true",
+                   help="skip running the selected tests on the unmutated copy first")
+    args = p.parse_args(argv)
+    if args.list:
+        for m in MUTANTS:
+            print(f"{m.name:<36} {m.bug}")
+        return 0
+    unknown = sorted(set(args.names) - {m.name for m in MUTANTS})
+    if unknown:
+        p.error(f"unknown mutant(s): {', '.join(unknown)}")
+    chosen = [m for m in MUTANTS if not args.names or m.name in args.names]
+    start = time.perf_counter()
+    copy = make_copy()
+    try:
+        check_import(copy)
+        outcomes: list[Outcome] = []
+        planted = {}
+        for m in chosen:  # every anchor first: a lost one fails fast, before minutes of tests
+            try:
+                planted[m.name] = plant((copy / m.file).read_text(), m)
+            except AnchorError as exc:
+                outcomes.append(Outcome(m, "anchor-lost", str(exc), 0.0))
+        if not args.no_clean_check and planted:
+            tests = tuple(dict.fromkeys(t for m in chosen if m.name in planted for t in m.tests))
+            status, output = run_tests(copy, tests, args.timeout * 2)
+            if status != 0:
+                print(output[-3000:], file=sys.stderr)
+                print(f"mutants: the unmutated copy fails {' '.join(tests)}: fix that first", file=sys.stderr)
+                return 1
+            print(f"clean copy passes the selected tests ({time.perf_counter() - start:.0f} s)", flush=True)
+        for m in chosen:
+            if m.name not in planted:
+                continue
+            path = copy / m.file
+            original = path.read_text()
+            path.write_text(planted[m.name])
+            t0 = time.perf_counter()
+            try:
+                status, output = run_tests(copy, m.tests, args.timeout)
+            finally:
+                path.write_text(original)
+            outcome = judge(m, status, output, time.perf_counter() - t0)
+            outcomes.append(outcome)
+            print(f"{outcome.verdict:<9} {m.name:<36} {outcome.test} ({outcome.seconds:.0f} s)", flush=True)
+    finally:
+        shutil.rmtree(copy, ignore_errors=True)
+    total = time.perf_counter() - start
+    outcomes.sort(key=lambda o: [m.name for m in MUTANTS].index(o.mutant.name))
+    if args.markdown:
+        print(markdown(outcomes, total))
+    bad = [o for o in outcomes if o.verdict != "killed"]
+    for o in bad:
+        print(f"mutants: {o.mutant.name}: {o.verdict}: {o.test}", file=sys.stderr)
+    print(f"{len(outcomes) - len(bad)} of {len(outcomes)} mutants killed in {total / 60:.1f} min", flush=True)
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,299 @@
+"""Cells on a Dask cluster: plain functions over plain data, the same bits as a local run.
+
+A cell's trials are reduced in fixed blocks of ``engine.BLOCK`` trials, merged in trial
+order (:func:`warpis.kernels.engine.run_block_moments`); the local pipeline merges the
+same blocks in the same order (``run_moments``).  So the work spreads freely:
+
+* **trial units** — consecutive blocks of one cell, or the blocks of several small cells
+  batched, each unit about ``UNIT_EVALUATIONS`` integrand evaluations; a unit returns
+  each block's moments (count, mean, M2..M4 per receiver), never raw trials;
+* **references** — one task per (scene, receivers), **moments** — one per (scene,
+  receiver, technique set), as :class:`~warpis.runs.cell.RunCache` shares them locally;
+* **scoring** — one task per cell: its blocks merged in order, its interval, reference
+  and predictions (:func:`warpis.runs.cell.score_cell`).
+
+Every task is a module-level function of its arguments; a scene travels once per worker
+as plain data (``client.scatter``, keyed by its content digest), and a worker process
+keeps what it uploaded and compiled (``kernels.device``'s cache) between tasks.  Tasks
+are pure, so Dask may rerun those of a worker that dies.  A worker started with the
+environment variable ``WARPIS_DEVICE=cuda`` runs its tasks on its GPU (the numbers then
+agree with the CPU's to the CPU/CUDA tolerance, not bit for bit).
+
+Dask is an optional extra (``pip install "warpis[cluster]"``); nothing here is imported
+unless ``--scheduler`` or ``--workers`` is given.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+from ..analysis.reference import Reference, reference
+from ..analysis.stats import SampleMoments
+from ..analysis.theory import Moments, moments
+from ..errors import WarpisError
+from ..kernels.engine import BLOCK, block_count, run_block_moments
+from ..scenes import Scene
+from .cell import LEVEL, CellJob, MeasuredCell, Row, score_cell
+
+EXTRA = 'pip install "warpis[cluster]"'
+# Integrand evaluations per trial unit: a few seconds of one core, so that the scheduler's
+# per-task cost (milliseconds) stays small next to the work, and a study's cells still
+# spread over many workers.
+UNIT_EVALUATIONS = 1 << 26
+CONNECT_TIMEOUT = 20  # seconds to reach a scheduler
+WORKER_TIMEOUT = 60  # seconds to wait for a first worker
+
+
+# --------------------------------------------------------------------------- tasks (run on workers)
+
+
+def worker_version() -> str:
+    """The warpis version of the process this runs in."""
+    from .. import __version__
+
+    return __version__
+
+
+def start_worker() -> str:
+    """Start Warp quietly in a worker (the CUDA-driver notice of a CPU-only machine is
+    noise), so every later task finds it ready."""
+    from ..cli import _quiet_warp
+
+    _quiet_warp()
+    return worker_version()
+
+
+def _on_device(scene: Scene) -> Scene:
+    device = os.environ.get("WARPIS_DEVICE")
+    return scene.on(device) if device else scene
+
+
+@dataclass(frozen=True)
+class UnitItem:
+    """Blocks ``first``..``stop``−1 of one cell's trials."""
+
+    cell: int  # index into the jobs
+    scene: str  # the scene's digest: its key in the task's ``scenes``
+    spec: str
+    n: int
+    trials: int
+    seed: int
+    receivers: tuple[int, ...]
+    first: int
+    stop: int
+
+
+def unit_task(scenes: dict[str, Scene], items: list[UnitItem],
+              delay: float = 0.0) -> list[tuple[list[SampleMoments], float]]:
+    """Each item's block moments (trial order) and the seconds it took.  ``delay`` adds
+    that many seconds per block (benchmarks: it stands in for a remote machine's work)."""
+    out = []
+    for item in items:
+        start = time.perf_counter()
+        blocks = run_block_moments(_on_device(scenes[item.scene]), item.spec, item.n, item.trials, seed=item.seed,
+                                   receivers=list(item.receivers), blocks=range(item.first, item.stop))
+        if delay:
+            time.sleep(delay * (item.stop - item.first))
+        out.append((blocks, time.perf_counter() - start))
+    return out
+
+
+def reference_task(scene: Scene, receivers: tuple[int, ...]) -> dict[int, Reference]:
+    """As ``RunCache.reference``: receiver → reference, for all ``receivers`` at once."""
+    return {r.index: r for r in reference(_on_device(scene), list(receivers))}
+
+
+def moments_task(scene: Scene, receiver: int, techniques: tuple[str, ...]) -> Moments:
+    """As ``RunCache.moments_of``."""
+    return moments(_on_device(scene), receiver, techniques)
+
+
+def score_task(scene: Scene, job: CellJob, units: list[list[tuple[list[SampleMoments], float]]],
+               places: list[tuple[int, int]], refs: dict[int, Reference],
+               mom: dict[int, Moments] | None) -> tuple[list[Row], float]:
+    """A cell's rows: its blocks (``units[u][i]`` for each (u, i) of ``places``, in trial
+    order) merged in order, scored as :func:`warpis.runs.cell.measure_cell` scores them.
+    (``job`` travels without its scene, which comes as ``scene``.)"""
+    start = time.perf_counter()
+    job = replace(job, scene=scene)
+    parts = [units[u][i] for u, i in places]
+    blocks = [b for part, _ in parts for b in part]
+    stats = SampleMoments.merged(blocks).interval(LEVEL)
+    rows = score_cell(job.scene, job.receivers, job.estimator, job.n, job.trials, job.seed, stats, refs, mom)
+    return rows, sum(seconds for _, seconds in parts) + time.perf_counter() - start
+
+
+# --------------------------------------------------------------------------- planning (client)
+
+
+def plan_units(jobs: Sequence[CellJob], budget: int = UNIT_EVALUATIONS) -> list[list[tuple[int, int, int]]]:
+    """Trial units: lists of (cell, first block, stop block).  A cell's blocks are cut into
+    runs of about ``budget`` evaluations (at least one block each); runs smaller than that
+    are batched with the next cells' until a unit reaches it."""
+    units: list[list[tuple[int, int, int]]] = []
+    current: list[tuple[int, int, int]] = []
+    work = 0
+    for c, job in enumerate(jobs):
+        per_block = len(job.receivers) * job.n * min(BLOCK, job.trials)
+        step = max(1, budget // max(1, per_block))
+        count = block_count(job.trials)
+        for first in range(0, count, step):
+            stop = min(count, first + step)
+            current.append((c, first, stop))
+            work += per_block * (stop - first)
+            if work >= budget:
+                units.append(current)
+                current, work = [], 0
+    if current:
+        units.append(current)
+    return units
+
+
+# --------------------------------------------------------------------------- the runner
+
+
+def _distributed() -> Any:
+    try:
+        import distributed
+    except ImportError:
+        raise WarpisError(f"--scheduler and --workers need Dask's distributed scheduler: {EXTRA}") from None
+    # warpis speaks in its own one-liners: Dask's loggers (some configured with their own
+    # levels) would add lines of their own to stderr.
+    names = [n for n in logging.root.manager.loggerDict if n.split(".")[0] in ("distributed", "tornado")]
+    for name in ("distributed", "distributed.client", "tornado", *names):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    return distributed
+
+
+def connect(scheduler: str | None = None, workers: int | None = None) -> ClusterRunner:
+    """A runner on the Dask scheduler at ``scheduler`` (``tcp://host:port``), or on a new
+    local cluster of ``workers`` single-threaded worker processes.  Every worker must run
+    this warpis version; any failure is a one-line WarpisError."""
+    if (scheduler is None) == (workers is None):
+        raise WarpisError("give exactly one of --scheduler and --workers")
+    distributed = _distributed()
+    cluster = None
+    where = f"--scheduler {scheduler}" if scheduler is not None else f"--workers {workers}"
+    try:
+        if workers is not None:
+            cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                               dashboard_address=":0", silence_logs=logging.CRITICAL,
+                                               env={"WARPIS_THREADS": "1"})
+            client = distributed.Client(cluster)
+        else:
+            client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT)
+    except (OSError, TimeoutError) as exc:
+        if cluster is not None:
+            cluster.close()
+        raise WarpisError(f"{where}: cannot reach the scheduler ({_first_line(exc)})") from None
+    runner = ClusterRunner(client, cluster, where)
+    try:
+        runner.check_workers()
+    except BaseException:
+        runner.close()
+        raise
+    return runner
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
+
+
+class ClusterRunner:
+    """Measures cells on a Dask cluster (see the module's docstring); use as a context
+    manager, or call :meth:`close`."""
+
+    def __init__(self, client: Any, cluster: Any = None, where: str = "the cluster"):
+        self.client, self.cluster, self.where = client, cluster, where
+        self.unit_evaluations = UNIT_EVALUATIONS  # the size of a trial unit (plan_units)
+        self.delay = 0.0  # benchmarks only: seconds each block sleeps, standing in for remote work
+
+    def __enter__(self) -> ClusterRunner:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def close(self) -> None:
+        try:
+            self.client.close()
+        finally:
+            if self.cluster is not None:
+                self.cluster.close()
+
+    def check_workers(self) -> None:
+        """At least one worker, every one on this warpis version (Warp started quietly)."""
+        try:
+            self.client.wait_for_workers(1, timeout=WORKER_TIMEOUT)
+            versions = self.client.run(start_worker)
+        except (OSError, TimeoutError) as exc:
+            raise WarpisError(f"{self.where}: no worker answered ({_first_line(exc)})") from None
+        mine = worker_version()
+        for address, version in sorted(versions.items()):
+            if version != mine:
+                raise WarpisError(f"{self.where}: worker {address} runs warpis {version}, this is warpis {mine}: "
+                                  f"install the same version everywhere")
+
+    def measure(self, jobs: Sequence[CellJob]) -> Iterator[tuple[int, MeasuredCell]]:
+        """Submit every cell at once; yield ``(index, MeasuredCell)`` as cells finish."""
+        distributed = _distributed()
+        futures: list[Any] = []
+        try:
+            scored = self._submit(jobs, futures)
+            for future in distributed.as_completed(scored):
+                rows, seconds = future.result()
+                yield scored[future], MeasuredCell(rows, seconds)
+        except WarpisError:
+            raise
+        except (OSError, TimeoutError, distributed.CancelledError) as exc:
+            raise WarpisError(f"{self.where}: lost the cluster ({_first_line(exc)}); finished cells are kept") from None
+        finally:
+            self.client.cancel(futures)
+
+    def _submit(self, jobs: Sequence[CellJob], futures: list[Any]) -> dict[Any, int]:
+        client = self.client
+        scenes = {}
+        for job in jobs:  # each scene once, by content
+            if job.scene.digest not in scenes:
+                scenes[job.scene.digest] = client.scatter(job.scene, hash=False, broadcast=True)
+        refs, moms = {}, {}
+        for job in jobs:
+            scene = scenes[job.scene.digest]
+            key = (job.scene.digest, job.receivers)
+            if key not in refs:
+                refs[key] = client.submit(reference_task, scene, job.receivers, pure=False)
+            for r in job.receivers if job.predict else ():
+                mkey = (job.scene.digest, r, job.estimator.techniques)
+                if mkey not in moms:
+                    moms[mkey] = client.submit(moments_task, scene, r, job.estimator.techniques, pure=False)
+        units = plan_units(jobs, self.unit_evaluations)
+        places: dict[int, list[tuple[int, int]]] = {c: [] for c in range(len(jobs))}
+        unit_futures = []
+        for u, unit in enumerate(units):
+            items = []
+            for i, (c, first, stop) in enumerate(unit):
+                job = jobs[c]
+                items.append(UnitItem(c, job.scene.digest, job.estimator.spec, job.n, job.trials, job.seed,
+                                      job.receivers, first, stop))
+                places[c].append((u, i))
+            needed = {item.scene: scenes[item.scene] for item in items}
+            unit_futures.append(client.submit(unit_task, needed, items, self.delay, pure=False))
+        scored = {}
+        for c, job in enumerate(jobs):
+            needed = sorted({u for u, _ in places[c]})
+            local = {u: k for k, u in enumerate(needed)}
+            mom = ({r: moms[(job.scene.digest, r, job.estimator.techniques)] for r in job.receivers}
+                   if job.predict else None)
+            future = client.submit(score_task, scenes[job.scene.digest], replace(job, scene=None),
+                                   [unit_futures[u] for u in needed],
+                                   [(local[u], i) for u, i in places[c]], refs[(job.scene.digest, job.receivers)],
+                                   mom, pure=False)
+            scored[future] = c
+        futures += [*scenes.values(), *refs.values(), *moms.values(), *unit_futures, *scored]
+        return scored
