@@ -187,8 +187,10 @@ def test_an_entry_registered_without_theory_gets_reasons_not_errors(quad, monkey
         exact_variance(quad, 2, "fake:single:cosine", 8)
     assert study.expected_text(Estimator("fake", "single", ("cosine",))) == "not stated"
     assert study.expected_slope(Estimator("fake", "mixture", ("light-area", "cosine")))["smooth"] == -1.0
+    # verify's defaults take a combiner without weights (its forms then say why) but leave a
+    # pattern without blocks to studies: it has no exact form to be held against.
     specs = {e.spec for e in default_estimators(("light-area", "cosine"))}
-    assert {"fake:single:cosine", "fake:balance:light-area+cosine", "jittered:fake-mis:light-area+cosine"} <= specs
+    assert "jittered:fake-mis:light-area+cosine" in specs and not any(s.startswith("fake:") for s in specs)
 
 
 def test_printed_eq7_is_detected_as_wrong_where_the_technique_integrals_differ(quad):

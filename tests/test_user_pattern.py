@@ -38,6 +38,7 @@ from warpis.kernels.estimators import parse_estimator
 from warpis.kernels.patterns import PATTERNS
 
 NAME = "test-lattice"
+BUILT_IN = set(PATTERNS)  # before any test registers one
 GOLDEN = 0.6180339887498949
 
 
@@ -136,7 +137,7 @@ def test_a_point_outside_the_square_is_refused_at_registration():
 def test_bad_registrations_are_one_line_errors(name, point, problem):
     with pytest.raises(warpis.WarpisError, match=problem):
         warpis.register_pattern(name, point)
-    assert set(PATTERNS) == {"independent", "jittered", "antithetic", "jittered-antithetic"}
+    assert set(PATTERNS) == BUILT_IN
 
 
 def test_unregistering_an_unknown_pattern_fails():
@@ -161,25 +162,34 @@ import warp as wp
 import warpis
 
 @wp.func
-def lattice_point(s: wp.uint32, i: wp.int32, m: wp.int32) -> wp.vec2:
+def hammersley_point(s: wp.uint32, i: wp.int32, m: wp.int32) -> wp.vec2:
+    # (i/m, the base-2 radical inverse of i), shifted by one random vector per trial
+    r = float(0.0)
+    f = float(0.5)
+    n = i
+    while n > 0:
+        if n % 2 == 1:
+            r = r + f
+        n = n / 2
+        f = f * 0.5
     x = float(i) / float(m) + warpis.uniform(s, 0, 0)
-    y = float(i) * 0.6180339887 + warpis.uniform(s, 0, 1)
+    y = r + warpis.uniform(s, 0, 1)
     return wp.vec2(wp.min(x - wp.floor(x), 0.99999994), wp.min(y - wp.floor(y), 0.99999994))
 
-warpis.register_pattern("lattice", lattice_point, description="a randomly shifted rank-1 lattice")
+warpis.register_pattern("hammersley", hammersley_point, description="a randomly shifted Hammersley set")
 '''
 
 
 def test_a_plugin_pattern_runs_in_estimate_and_is_listed_in_help(tmp_path):
-    (tmp_path / "lattice.py").write_text(PLUGIN)
-    plugin = str(tmp_path / "lattice.py")
-    result = run_warpis("estimate", "occluded-quad", "--plugin", plugin, "--estimator", "lattice:single:light-area",
+    (tmp_path / "hammersley.py").write_text(PLUGIN)
+    plugin = str(tmp_path / "hammersley.py")
+    result = run_warpis("estimate", "occluded-quad", "--plugin", plugin, "--estimator", "hammersley:single:light-area",
                         "--n", "16", "--trials", "200", "--receivers", "0", "--json")
     assert result.status == 0, result.err
     row = json.loads(result.out)["receivers"][0]
     assert abs(row["mean"] - 0.5235598) < 5 * row["stderr"] + 1e-6
     help_text = run_warpis("--plugin", plugin, "estimate", "--help")
-    assert "a randomly shifted rank-1 lattice" in help_text.out
+    assert "a randomly shifted Hammersley set" in help_text.out
 
 
 @pytest.mark.parametrize("body, problem", [
@@ -202,19 +212,19 @@ def test_a_bad_plugin_is_one_line_and_exit_2(tmp_path, body, problem):
 def test_files_say_which_forms_a_user_pattern_lacks_and_why(tmp_path):
     """summary.json (study) and verify.json (verify) list the forms in scope that have no
     value for the user's pattern, with the reason; the rows still carry the measurement."""
-    (tmp_path / "lattice.py").write_text(PLUGIN)
+    (tmp_path / "hammersley.py").write_text(PLUGIN)
     (tmp_path / "study.toml").write_text(
-        '[study]\nname = "lattice"\ntrials = 8\nn = [4]\nscenes = ["occluded-quad"]\nreceivers = [0]\n'
-        'estimators = ["lattice:balance:light-area+cosine", "jittered:balance:light-area+cosine"]\noutputs = []\n')
-    result = run_warpis("study", "--plugin", str(tmp_path / "lattice.py"), str(tmp_path / "study.toml"),
+        '[study]\nname = "hammersley"\ntrials = 8\nn = [4]\nscenes = ["occluded-quad"]\nreceivers = [0]\n'
+        'estimators = ["hammersley:balance:light-area+cosine", "jittered:balance:light-area+cosine"]\noutputs = []\n')
+    result = run_warpis("study", "--plugin", str(tmp_path / "hammersley.py"), str(tmp_path / "study.toml"),
                         "--out", str(tmp_path / "out"))
     assert result.status == 0, result.err
     absent = json.loads((tmp_path / "out" / "summary.json").read_text())["absent"]
-    assert set(absent) == {"lattice:balance:light-area+cosine"}
-    assert "no block decomposition" in absent["lattice:balance:light-area+cosine"]["exact"]
-    assert "lattice:power:light-area+cosine" in absent["lattice:balance:light-area+cosine"]["veach-bound"]
-    result = run_warpis("verify", "occluded-quad", "--plugin", str(tmp_path / "lattice.py"), "--estimators",
-                        "lattice:single:cosine", "--n", "4", "--trials", "8", "--receivers", "0",
+    assert set(absent) == {"hammersley:balance:light-area+cosine"}
+    assert "no block decomposition" in absent["hammersley:balance:light-area+cosine"]["exact"]
+    assert "hammersley:power:light-area+cosine" in absent["hammersley:balance:light-area+cosine"]["veach-bound"]
+    result = run_warpis("verify", "occluded-quad", "--plugin", str(tmp_path / "hammersley.py"), "--estimators",
+                        "hammersley:single:cosine", "--n", "4", "--trials", "8", "--receivers", "0",
                         "--out", str(tmp_path / "verify"))
     assert result.status == 0, result.err
     row = json.loads((tmp_path / "verify" / "verify.json").read_text())["rows"][0]
@@ -222,7 +232,7 @@ def test_files_say_which_forms_a_user_pattern_lacks_and_why(tmp_path):
     assert row["predictions"] == {} and row["variance"] > 0
 
 
-def test_missing_forms_of_the_built_in_estimators_are_none():
+def test_verify_runs_only_estimators_whose_forms_are_all_there():
     from warpis.analysis.theory import missing_forms
     from warpis.runs.verify import default_estimators
 

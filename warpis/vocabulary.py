@@ -207,6 +207,9 @@ class Slope:
 IID_SLOPE = Slope(-1.0, -1.0)
 # Jittered 2D points: −2 on smooth integrands, −1.5 across edges.
 STRATIFIED_SLOPE = Slope(-2.0, -1.5)
+# Owen-scrambled (0,m,2)-nets: N^-3 (log N) on smooth integrands (Owen 1997), and the
+# N^-3/2 of stratification across edges.
+SCRAMBLED_NET_SLOPE = Slope(-3.0, -1.5)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -214,7 +217,9 @@ class Pattern(Entry):
     """Where the m primary samples u ∈ [0,1)² of one technique in one trial fall."""
 
     paired: bool = False  # places samples in pairs (u and a reflection): m must be even
-    grid: bool = False  # one point per cell of the grid_shape(m) grid: float32 limits the cells per side
+    # m → the strata per side its points must land in exactly (None: it stratifies nothing);
+    # float32 resolves at most MAX_CELLS_PER_SIDE of them
+    strata: Callable[[int], int] | None = None
     blocks: Callable[[int], Blocks] | None = None  # m samples → independent blocks; None: no exact form
     slope: Slope | None = None  # expected convergence (for a stratifying combiner); None: none stated
 
@@ -224,11 +229,20 @@ class Pattern(Entry):
             return "needs at least one sample per technique"
         if self.paired and m % 2:
             return f"pairs samples, so it needs an even number of samples per technique (got {m})"
-        if self.grid and max(grid_shape(m)) > MAX_CELLS_PER_SIDE:
-            rows, cols = grid_shape(m)
-            return (f"lays {m} samples per technique on a {rows} × {cols} grid, and float32 cannot place points "
-                    f"inside more than {MAX_CELLS_PER_SIDE} cells per side")
+        if self.strata is not None and self.strata(m) > MAX_CELLS_PER_SIDE:
+            return (f"stratifies {m} samples per technique into {self.strata(m)} strata per side, and float32 "
+                    f"cannot place points inside more than {MAX_CELLS_PER_SIDE} per side")
         return None
+
+
+def grid_side(m: int) -> int:
+    """Strata per side of the grid_shape(m) grid (jittered cells)."""
+    return max(grid_shape(m))
+
+
+def every_sample(m: int) -> int:
+    """Strata per side of a pattern that puts each of its m points in a row and column of its own."""
+    return m
 
 
 

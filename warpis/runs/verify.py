@@ -57,7 +57,8 @@ def default_receivers(scene: Scene) -> list[int]:
 def default_estimators(techniques: Sequence[str]) -> list[Estimator]:
     """Every estimator the technique set allows: each one-technique combiner per technique,
     then each combiner of several techniques over the set, each under the patterns its
-    registry entry names for verify (``Combiner.verify_under``; all by default)."""
+    registry entry names for verify (``Combiner.verify_under``; by default every pattern
+    with an exact form)."""
     techs = tuple(techniques)
     out: list[Estimator] = []
     for t in techs:
@@ -70,7 +71,11 @@ def default_estimators(techniques: Sequence[str]) -> list[Estimator]:
 def _patterns(combiner: str) -> tuple[str, ...]:
     """The patterns verify runs ``combiner`` under by default."""
     under = COMBINERS[combiner].verify_under
-    return tuple(PATTERNS) if under is None else under
+    if under is not None:
+        return under
+    # Verify holds measurements against the theory: patterns without it (no blocks, so no
+    # exact form) have nothing to be held against, and are left to studies.
+    return tuple(name for name, entry in PATTERNS.items() if entry.blocks is not None)
 
 
 @dataclass
