@@ -74,6 +74,9 @@ MUTANTS: tuple[Mutant, ...] = (
            "total = total + wp.float64(f)\n",
            "total = total + wp.float64(f / technique_pdf(techs[k], scene, table, sp, w))\n",
            ("tests/test_theory.py", "tests/test_estimators.py")),
+    Mutant("maximum-becomes-minimum", "the maximum heuristic keeps the sample whose pdf is the smallest (its "
+           "weights still sum to 1, but land on techniques that cannot sample there)", K + "estimators.py", "largest_pdf", "if g > pdf_k or (j < k and g == pdf_k):",
+           "if g < pdf_k or (j < k and g == pdf_k):", ("tests/test_estimators.py",)),
     Mutant("trials-share-a-stream", "consecutive trials share one random stream (trial → trial // 2)",
            K + "estimators.py", "stratified_trial",
            "s = stream(seed, sp.receiver, trial, k)", "s = stream(seed, sp.receiver, trial / 2, k)",

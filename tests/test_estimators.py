@@ -273,7 +273,8 @@ def _replay_combiner(name: str, f: np.ndarray, g: np.ndarray, k: np.ndarray) -> 
     gk = g[np.arange(len(f)), k]
     with np.errstate(divide="ignore", invalid="ignore"):
         psi = {"single": f / gk, "mixture": f / g.mean(axis=1), "balance": f / g.mean(axis=1),
-               "power": f * gk / (g * g).sum(axis=1), "biased": f}[name]
+               "power": f * gk / (g * g).sum(axis=1), "biased": f,
+               "maximum": np.where(np.argmax(g, axis=1) == k, f / gk, 0.0)}[name]
     valid = (f > 0) if name == "biased" else (f > 0) & (gk > 0)
     return np.where(valid, psi, 0.0)
 
@@ -315,7 +316,7 @@ def test_trial_kernel_equals_each_combiners_formula_replayed_in_numpy(quad, comb
     which is just as unbiased and which no test of the mean can tell apart — and each
     combiner's normalisation (1/N, 1/m)."""
     entry = COMBINERS[combiner]
-    assert combiner in ("single", "mixture", "balance", "power", "biased"), \
+    assert combiner in ("single", "mixture", "balance", "power", "biased", "maximum"), \
         f"write the formula of the new combiner {combiner!r} in _replay_combiner"
     est = Estimator("independent", combiner, ("light-area", "cosine") if entry.several else
                     (("cosine",) if combiner == "biased" else ("light-area",)))

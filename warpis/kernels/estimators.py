@@ -15,6 +15,8 @@ k, ḡ their average, N_g techniques, m = N/N_g samples per technique):
 ``power``    multi-sample MIS with the power heuristic (β = 2):
              Σ_k (1/m) Σ_i w_k f/g_k, w_k = g_k² / Σ_j g_j².
 ``biased``   seed eq. 19: (1/N) Σ f(X), X ~ g, unweighted (converges to ∫ f g, not F).
+``maximum``  multi-sample MIS with Veach's maximum heuristic: Σ_k (1/m) Σ_i w_k f/g_k,
+             w_k = 1 where g_k is the largest pdf (ties to the first technique), else 0.
 """
 
 from __future__ import annotations
@@ -52,6 +54,12 @@ def _power_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
     return f * pdf[:, k] / (pdf**2).sum(axis=1)  # w_k f/g_k, w_k = g_k²/Σ_j g_j²
 
 
+def _maximum_weights(k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
+    """w_k = 1 where g_k is the largest pdf (ties to the first technique), else 0."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.argmax(pdf, axis=1) == k, f / pdf[:, k], 0.0)
+
+
 COMBINERS: Registry[Combiner] = Registry("combiner", [
     Combiner(name="single", code=0, description="IS with one technique: (1/N) Σ f/g", several=False,
              weights=_importance_weights),
@@ -67,6 +75,9 @@ COMBINERS: Registry[Combiner] = Registry("combiner", [
     Combiner(name="biased", code=4, description="the unweighted mean of f over samples of one technique: "
                                                 "converges to ∫ f g, not F",
              several=False, unbiased=False, weights=_unweighted, verify_under=("independent",)),
+    Combiner(name="maximum", code=5, description="multi-sample MIS, maximum heuristic (Veach): a sample counts, "
+                                                 "weight f/g_k, only where its technique's pdf is the largest",
+             several=True, splits_n=True, weights=_maximum_weights, verify_under=("independent", "jittered")),
 ])
 
 def estimator_help() -> str:
@@ -82,6 +93,7 @@ MIXTURE = wp.constant(COMBINERS["mixture"].code)
 BALANCE = wp.constant(COMBINERS["balance"].code)
 POWER = wp.constant(COMBINERS["power"].code)
 BIASED = wp.constant(COMBINERS["biased"].code)
+MAXIMUM = wp.constant(COMBINERS["maximum"].code)
 # Random-number stream of the mixture's technique choices: past any technique's stream.
 PICK_STREAM = 1 << 16
 
@@ -233,6 +245,17 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
         return acc
 
     @wp.func(module=module)
+    def largest_pdf(techs: wp.array(dtype=wp.int32), k: wp.int32, pdf_k: float, scene: SceneData, table: LightTable,
+                    sp: ShadingPoint, w: wp.vec3) -> bool:
+        """Whether g_k(ω) = pdf_k is the largest pdf of the set, ties going to the first technique."""
+        for j in range(techs.shape[0]):
+            if j != k:
+                g = technique_pdf(techs[j], scene, table, sp, w)
+                if g > pdf_k or (j < k and g == pdf_k):
+                    return False
+        return True
+
+    @wp.func(module=module)
     def mixture_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
                       pattern: wp.int32, techs: wp.array(dtype=wp.int32), n: wp.int32, rows: wp.int32,
                       cols: wp.int32) -> wp.float64:
@@ -256,7 +279,7 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
     def stratified_trial(scene: SceneData, table: LightTable, sp: ShadingPoint, seed: wp.uint32, trial: wp.int32,
                          pattern: wp.int32, combiner: wp.int32, techs: wp.array(dtype=wp.int32), m: wp.int32,
                          rows: wp.int32, cols: wp.int32) -> wp.float64:
-        """single, balance, power and biased: m samples from each technique's own pattern."""
+        """single, balance, power, maximum and biased: m samples from each technique's own pattern."""
         n_g = techs.shape[0]
         total = wp.float64(0.0)
         for k in range(n_g):
@@ -276,6 +299,9 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
                             elif combiner == BALANCE:
                                 gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
                                 total = total + wp.float64(f / gbar)
+                            elif combiner == MAXIMUM:
+                                if largest_pdf(techs, k, pdf, scene, table, sp, w):
+                                    total = total + wp.float64(f / pdf)
                             else:
                                 total = total + wp.float64(f * pdf / other_pdfs(techs, k, pdf, scene, table, sp, w, 2))
         if combiner == BALANCE:
