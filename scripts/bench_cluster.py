@@ -81,7 +81,7 @@ def bytes_per_cell() -> dict:
     job = jobs[0]
     block = run_block_moments(job.scene, job.estimator, job.n, job.trials, job.seed, list(job.receivers),
                               blocks=range(1))[0]
-    items = [cluster.UnitItem(c, jobs[c].scene.digest, jobs[c].estimator.spec, jobs[c].n, jobs[c].trials,
+    items = [cluster.UnitItem(jobs[c].scene.digest, jobs[c].estimator.spec, jobs[c].n, jobs[c].trials,
                               jobs[c].seed, jobs[c].receivers, first, stop) for unit in units for c, first, stop in unit]
     blocks = sum(stop - first for unit in units for _, first, stop in unit)
     _, measured = next(LocalRunner().measure([job]))

@@ -77,7 +77,6 @@ def _on_device(scene: Scene) -> Scene:
 class UnitItem:
     """Blocks ``first``..``stop``−1 of one cell's trials."""
 
-    cell: int  # index into the jobs
     scene: str  # the scene's digest: its key in the task's ``scenes``
     spec: str
     n: int
@@ -256,6 +255,12 @@ class ClusterRunner:
         finally:
             self.client.cancel(futures)
 
+    def _submit_unit(self, jobs: Sequence[CellJob], unit: list[tuple[int, int, int]], scenes: dict[str, Any]) -> Any:
+        items = [UnitItem(jobs[c].scene.digest, jobs[c].estimator.spec, jobs[c].n, jobs[c].trials, jobs[c].seed,
+                          jobs[c].receivers, first, stop) for c, first, stop in unit]
+        needed = {item.scene: scenes[item.scene] for item in items}
+        return self.client.submit(unit_task, needed, items, self.delay, pure=False)
+
     def _submit(self, jobs: Sequence[CellJob], futures: list[Any]) -> dict[Any, int]:
         client = self.client
         scenes = {}
@@ -274,19 +279,19 @@ class ClusterRunner:
                     moms[mkey] = client.submit(moments_task, scene, r, job.estimator.techniques, pure=False)
         units = plan_units(jobs, self.unit_evaluations)
         places: dict[int, list[tuple[int, int]]] = {c: [] for c in range(len(jobs))}
-        unit_futures = []
         for u, unit in enumerate(units):
-            items = []
-            for i, (c, first, stop) in enumerate(unit):
-                job = jobs[c]
-                items.append(UnitItem(c, job.scene.digest, job.estimator.spec, job.n, job.trials, job.seed,
-                                      job.receivers, first, stop))
+            for i, (c, _, _) in enumerate(unit):
                 places[c].append((u, i))
-            needed = {item.scene: scenes[item.scene] for item in items}
-            unit_futures.append(client.submit(unit_task, needed, items, self.delay, pure=False))
+        unit_futures: dict[int, Any] = {}
         scored = {}
+        # Cell by cell, its units then its scoring: Dask runs earlier submissions first, so
+        # cells finish (and results.csv grows) in order, and scoring is spread over the run
+        # instead of waiting for every unit.
         for c, job in enumerate(jobs):
             needed = sorted({u for u, _ in places[c]})
+            for u in needed:
+                if u not in unit_futures:
+                    unit_futures[u] = self._submit_unit(jobs, units[u], scenes)
             local = {u: k for k, u in enumerate(needed)}
             mom = ({r: moms[(job.scene.digest, r, job.estimator.techniques)] for r in job.receivers}
                    if job.predict else None)
@@ -295,5 +300,5 @@ class ClusterRunner:
                                    [(local[u], i) for u, i in places[c]], refs[(job.scene.digest, job.receivers)],
                                    mom, pure=False)
             scored[future] = c
-        futures += [*scenes.values(), *refs.values(), *moms.values(), *unit_futures, *scored]
+        futures += [*scenes.values(), *refs.values(), *moms.values(), *unit_futures.values(), *scored]
         return scored
