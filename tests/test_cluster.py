@@ -134,6 +134,7 @@ def test_the_cli_runs_a_study_on_workers(tmp_path, cli):
 @pytest.mark.parametrize("args, problem", [
     (["--scheduler", "tcp://127.0.0.1:9"], "--scheduler tcp://127.0.0.1:9: cannot reach the scheduler"),
     (["--scheduler", ""], "--scheduler: must name a scheduler address"),
+    (["--scheduler", "foo"], "--scheduler foo: cannot reach the scheduler (ValueError: missing port number"),
     (["--workers", "100000"], "--workers: at most 64"),
     (["--workers", "0"], "--workers"),
     (["--workers", "2", "--scheduler", "tcp://x:1"], "not allowed with argument"),

@@ -194,6 +194,7 @@ def test_a_plugin_pattern_runs_in_estimate_and_is_listed_in_help(tmp_path):
 
 @pytest.mark.parametrize("body, problem", [
     (None, "no such file"),
+    ("<dir>", "is a directory, not a Python file"),
     ("raise RuntimeError('broken\\nsecond line')", "RuntimeError: broken"),
     ("import warpis\nwarpis.register_pattern('jittered', None)", "point must be a @wp.func"),
     ("def (:", "SyntaxError"),
@@ -201,7 +202,9 @@ def test_a_plugin_pattern_runs_in_estimate_and_is_listed_in_help(tmp_path):
 ])
 def test_a_bad_plugin_is_one_line_and_exit_2(tmp_path, body, problem):
     path = tmp_path / "plugin.py"
-    if body is not None:
+    if body == "<dir>":
+        path.mkdir()
+    elif body is not None:
         path.write_text(body)
     result = run_warpis("estimate", "occluded-quad", "--plugin", str(path), "--estimator", "independent:single:cosine",
                         "--n", "4", "--trials", "8")
@@ -238,3 +241,10 @@ def test_verify_runs_only_estimators_whose_forms_are_all_there():
 
     for est in default_estimators(("light-area", "cosine")):
         assert missing_forms(est) == {}, est
+
+
+@pytest.mark.parametrize("m, trials, problem", [(0, 4, "m: must be at least 1"), (4, 2.5, "expected an integer"),
+                                                (4, 1 << 31, "at most 2,147,483,647")])
+def test_pattern_points_refuses_counts_the_kernels_cannot_take(m, trials, problem):
+    with pytest.raises(warpis.WarpisError, match=problem):
+        patterns.pattern_points("jittered", m, trials)

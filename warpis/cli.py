@@ -349,6 +349,8 @@ def load_plugin(path: str) -> None:
     """Run the Python file ``path`` (it registers techniques or patterns); any failure is
     one line naming the file."""
     where = f"--plugin {path}"
+    if os.path.isdir(path):
+        raise WarpisError(f"{where}: is a directory, not a Python file")
     if not os.path.isfile(path):
         raise WarpisError(f"{where}: no such file")
     try:

@@ -221,12 +221,14 @@ class _BlockReducer:
     waiting blocks, bounded by the chunks in flight.
     """
 
-    def __init__(self, rows: int, trials: int, first_block: int = 0):
+    def __init__(self, rows: int, trials: int, first_block: int = 0, keep_blocks: bool = False):
         self.rows, self.trials = rows, trials
         self.partial: dict[int, tuple[np.ndarray, int]] = {}  # block → (values, trials arrived)
         self.waiting: dict[int, SampleMoments] = {}  # reduced blocks with an unmerged predecessor
         self.next = first_block  # the first block not yet merged
-        self.blocks: list[SampleMoments] = []  # every block's own moments, in trial order
+        # Every block's own moments, in trial order, when asked for (run_block_moments):
+        # run_moments keeps only the running total, so its memory stays flat in M.
+        self.blocks: list[SampleMoments] | None = [] if keep_blocks else None
         self.total: SampleMoments | None = None
 
     def split(self, start: int, values: np.ndarray) -> list[_Piece]:
@@ -257,7 +259,8 @@ class _BlockReducer:
                 self.waiting[block] = SampleMoments.of(buf)
         while self.next in self.waiting:
             block_moments = self.waiting.pop(self.next)
-            self.blocks.append(block_moments)
+            if self.blocks is not None:
+                self.blocks.append(block_moments)
             self.total = block_moments if self.total is None else self.total.merge(block_moments)
             self.next += 1
 
@@ -383,7 +386,8 @@ def run_block_moments(
         raise WarpisError(f"blocks must be a non-empty range within 0..{count} (got {blocks})")
     first = blocks.start * BLOCK
     job = _prepare(scene, estimator, n, min(blocks.stop * BLOCK, trials), seed, receivers, first)
-    reducer = _BlockReducer(job.rows, trials, blocks.start)
+    reducer = _BlockReducer(job.rows, trials, blocks.start, keep_blocks=True)
     _drive(job, reducer.split, reducer.add, threads, chunk, progress)
-    assert not reducer.partial and not reducer.waiting and len(reducer.blocks) == len(blocks)
+    assert reducer.blocks is not None and not reducer.partial and not reducer.waiting
+    assert len(reducer.blocks) == len(blocks)
     return reducer.blocks

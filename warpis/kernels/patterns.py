@@ -414,6 +414,7 @@ def pattern_points(pattern: str, m: int, trials: int, seed: int = 0) -> np.ndarr
     from .. import limits
 
     entry = PATTERNS.lookup(pattern)
+    m, trials = limits.count(m, "m"), limits.count(trials, "trials")
     problem = entry.problem(m)
     if problem:
         raise WarpisError(f"pattern {pattern!r} {problem}")

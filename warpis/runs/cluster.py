@@ -186,7 +186,7 @@ def connect(scheduler: str | None = None, workers: int | None = None) -> Cluster
             client = distributed.Client(cluster)
         else:
             client = distributed.Client(scheduler, timeout=CONNECT_TIMEOUT)
-    except (OSError, TimeoutError) as exc:
+    except (OSError, TimeoutError, ValueError) as exc:  # ValueError: an address Dask cannot parse
         if cluster is not None:
             cluster.close()
         raise WarpisError(f"{where}: cannot reach the scheduler ({_first_line(exc)})") from None
