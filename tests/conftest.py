@@ -30,7 +30,9 @@ import trimesh
 
 import warpis
 
-BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")
+BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")  # TOML scenes
+# Mitsuba XML scenes (need the mitsuba extra; tests/test_mitsuba_scene.py and test_against_mitsuba.py)
+MITSUBA_BUNDLED = ("mitsuba-cornell-box", "mitsuba-veach-plates")
 
 # The default material and receivers of write_scene: irradiance at the origin, facing +z.
 IRRADIANCE = {"type": "irradiance"}
@@ -205,8 +207,8 @@ def write_scene_fixture():
 
 @pytest.fixture(scope="session")
 def loaded_scenes() -> dict[str, warpis.Scene]:
-    """Every bundled scene, loaded once per test session on the CPU (name → Scene)."""
-    return {name: warpis.load_scene(name) for name in warpis.bundled_scenes()}
+    """Every bundled TOML scene, loaded once per test session on the CPU (name → Scene)."""
+    return {name: warpis.load_scene(name) for name in BUNDLED}
 
 
 @pytest.fixture(scope="session", params=BUNDLED)

@@ -20,6 +20,8 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
+from conftest import BUNDLED
+
 import warpis
 from warpis.analysis.reference import reference
 from warpis.analysis.stats import variance_interval
@@ -96,11 +98,11 @@ def references() -> _References:
     return _References()
 
 
-@pytest.mark.parametrize("name", warpis.bundled_scenes())
+@pytest.mark.parametrize("name", BUNDLED)
 def test_every_estimator_is_unbiased(references, name):
     """Every pattern × combiner × technique set: mean within z* of the reference.
 
-    False-failure probability ≤ 2.5e-4 per scene, 1e-3 over the four bundled scenes
+    False-failure probability ≤ 2.5e-4 per scene, 1e-3 over the four bundled TOML scenes
     (Bonferroni over all comparisons of a scene).
     """
     scene, refs = references[name]
@@ -375,7 +377,7 @@ def test_jittered_beats_independent_widely_on_a_smooth_receiver(quad, references
     ("independent:biased:cosine+uniform", 8, "exactly one technique"),
     ("stratified:single:cosine", 8, "unknown pattern"),
     ("independent:heuristic:cosine", 8, "unknown combiner"),
-    ("independent:single:bsdf", 8, "unknown technique"),
+    ("independent:single:bxdf", 8, "unknown technique"),
     ("independent:balance:cosine+cosine", 8, "twice"),
     ("independent-single-cosine", 8, "PATTERN:COMBINER"),
 ])

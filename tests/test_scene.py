@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import BUNDLED, floor_entry, light_entry, quad, run_warpis, write_mesh, write_scene
+from conftest import BUNDLED, MITSUBA_BUNDLED, floor_entry, light_entry, quad, run_warpis, write_mesh, write_scene
 
 import warpis
 from warpis.errors import WarpisError
@@ -63,8 +63,8 @@ def _trimesh(path: Path) -> trimesh.Trimesh:
 
 
 def test_bundled_scene_names():
-    """bundled_scenes() lists exactly the four scenes shipped in meshes/."""
-    assert warpis.bundled_scenes() == sorted(BUNDLED)
+    """bundled_scenes() lists exactly the scenes shipped in meshes/: TOML and Mitsuba XML."""
+    assert warpis.bundled_scenes() == sorted(BUNDLED + MITSUBA_BUNDLED)
 
 
 def test_bundled_counts_and_totals(bundled_scene):
@@ -427,7 +427,7 @@ def _bad_scene(case: str, tmp_path: Path) -> tuple[Path, str, str]:
         path = tmp_path / "absent" / "scene.toml"
         return path, str(path), "no such scene file"
     if case == "unknown-bundled-name":
-        return Path("occluded-quadd"), "occluded-quadd", "bundled: " + ", ".join(sorted(BUNDLED))
+        return Path("occluded-quadd"), "occluded-quadd", "bundled: " + ", ".join(sorted(BUNDLED + MITSUBA_BUNDLED))
     kwargs, file, problem = BAD[case]
     path = write_scene(tmp_path, **kwargs)
     return path, str(tmp_path / file), problem
@@ -761,7 +761,8 @@ def test_veach_plates_see_every_light(loaded_scenes):
 
 
 # An example value for every key a material table may hold (scene.MATERIAL_PARAMETERS).
-MATERIAL_EXAMPLES = {"albedo": 0.5, "exponent": 20.0, "view": [0.0, -3.0, 4.0]}
+MATERIAL_EXAMPLES = {"albedo": 0.5, "exponent": 20.0, "view": [0.0, -3.0, 4.0], "alpha": 0.2,
+                     "distribution": "beckmann", "sample_visible": False, "eta": 1.7, "k": 2.5, "specular": 0.8}
 
 
 @pytest.mark.parametrize("name", MATERIALS)
@@ -777,6 +778,12 @@ def test_every_registered_material_loads_and_requires_its_keys(name, tmp_path):
     assert rx.material_of(0) is material
     if "albedo" in material.keys:
         assert rx.albedo[0] == 0.5
+    if "alpha" in material.keys:  # grey microfacet parameters: every channel the same
+        assert rx.alpha[0] == 0.2 and rx.distribution[0] == 0 and rx.sample_visible[0] == 0
+        np.testing.assert_array_equal(rx.eta[0], [1.7] * 3)
+        np.testing.assert_allclose(rx.specular[0].sum(), 0.8)
+    if "k" in material.keys:
+        np.testing.assert_array_equal(rx.k[0], [2.5] * 3)
     other = sorted(set(MATERIAL_EXAMPLES) - set(material.keys))
     if other:
         with pytest.raises(WarpisError, match=f"unknown key '{other[0]}'"):
@@ -837,13 +844,16 @@ def test_from_arrays_broadcasts_and_normalises():
     grid shape, material codes and mesh labels are kept."""
     s = warpis.Scene.from_arrays(**_arrays(
         positions=[[x, y, 0.0] for y in (-0.5, 0.5) for x in (-1.0, 0.0, 1.0)], normals=[0.0, 0.0, 2.0],
-        material=[0, 1, 2, 2, 1, 0], exponent=20.0, view=[0.0, 3.0, 4.0], group=[0, 0, 0, 1, 1, 1],
+        material=[0, 1, 2, 3, 4, 0], exponent=20.0, alpha=[0.1, 0.2, 0.3, 0.4, 0.5, 0.6], specular=0.9, view=[0.0, 3.0, 4.0], group=[0, 0, 0, 1, 1, 1],
         group_names=["near", "far"], grid_shape=(2, 3), triangle_mesh=[0, 0, 1, 1], mesh_names=["floor", "lamp"]))
     rx = s.receivers
     np.testing.assert_array_equal(rx.normals, np.tile([0.0, 0.0, 1.0], (6, 1)))
     np.testing.assert_allclose(rx.view, np.tile([0.0, 0.6, 0.8], (6, 1)))
-    assert rx.material.dtype == np.int32 and [rx.material_name(i) for i in (0, 1, 2)] == list(MATERIALS)
+    assert rx.material.dtype == np.int32 and [rx.material_name(i) for i in range(5)] == list(MATERIALS)
     np.testing.assert_array_equal(rx.exponent, np.full(6, 20.0))
+    np.testing.assert_array_equal(rx.alpha, [0.1, 0.2, 0.3, 0.4, 0.5, 0.6])
+    np.testing.assert_allclose(rx.specular, np.full((6, 3), 0.3))  # grey: split evenly over the channels
+    np.testing.assert_allclose(rx.specular_weight, np.full(6, 0.9 / 1.4))  # Mitsuba's s / (d + s), d = albedo
     assert rx.group_names == ["near", "far"] and rx.grid_shape == (2, 3)
     assert s.mesh_names == ["floor", "lamp"] and list(s.triangle_mesh) == [0, 0, 1, 1]
     assert not s.vertices.flags.writeable and not rx.positions.flags.writeable
@@ -861,7 +871,8 @@ def _mutations(scene: warpis.Scene) -> dict:
     out = {name: replace(scene, **{name: nudged(getattr(scene, name))}) for name in ("vertices", "emission")}
     out["triangles"] = replace(scene, triangles=scene.triangles[:, [1, 2, 0]])  # same triangles, other order
     out["triangles dtype"] = replace(scene, triangles=scene.triangles.astype(np.int64))
-    for name in ("positions", "normals", "albedo", "exponent", "view"):
+    for name in ("positions", "normals", "albedo", "exponent", "view", "alpha", "distribution", "sample_visible",
+                 "eta", "k", "specular", "specular_weight"):
         out[f"receivers.{name}"] = replace(scene, receivers=replace(rx, **{name: nudged(getattr(rx, name))}))
     out["receivers.material"] = replace(scene, receivers=replace(rx, material=np.zeros_like(rx.material)))
     return out

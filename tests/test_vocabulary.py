@@ -154,10 +154,12 @@ def test_material_and_technique_entries_are_consistent():
     BSDF technique is registered; every technique has a positive cost."""
     from warpis.scenes.toml_source import MATERIAL_PARAMETERS
 
+    receivers = warpis.load_scene("veach-plates").receivers
+
     for material in MATERIALS.values():
         assert set(material.required) <= set(material.keys) <= set(MATERIAL_PARAMETERS)
         assert material.bsdf_technique in TECHNIQUES
-        scale = material.lambert_scale(np.array([0.5, 1.0]))
+        scale = material.lambert_scale(receivers, np.array([0, 1]))
         assert scale.shape == (2,) and np.all(scale > 0)
     for technique in TECHNIQUES.values():
         assert technique.cost > 0

@@ -87,25 +87,35 @@ def _print(text: str) -> None:
 def _load(args: argparse.Namespace):
     from .scenes import load_scene
 
-    return load_scene(args.scene, device=args.device)
+    return load_scene(args.scene, device=args.device, channel=args.channel, receivers=args.receivers_file)
 
 
 # --------------------------------------------------------------------------- commands
 
 
 def _summary_line(s: dict) -> str:
-    return (f"{s['scene']:<16} {s['triangles']:>9} {s['emitter_triangles']:>9} {s['receivers']:>9}"
+    return (f"{s['scene']:<22} {s['triangles']:>9} {s['emitter_triangles']:>9} {s['receivers']:>9}"
             f" {s['emitter_area']:>12.5g} {s['total_power']:>12.5g}")
 
 
-_SUMMARY_HEAD = f"{'scene':<16} {'triangles':>9} {'emitters':>9} {'receivers':>9} {'emitter area':>12} {'power':>12}"
+_SUMMARY_HEAD = f"{'scene':<22} {'triangles':>9} {'emitters':>9} {'receivers':>9} {'emitter area':>12} {'power':>12}"
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
     from .scenes import bundled_scenes, load_scene
 
-    rows = [load_scene(name, device=args.device).summary() for name in bundled_scenes()]
-    _emit({"scenes": rows}, args.json, "\n".join([_SUMMARY_HEAD] + [_summary_line(r) for r in rows]))
+    rows, missing = [], []
+    for name in bundled_scenes():
+        try:
+            rows.append(load_scene(name, device=args.device).summary())
+        except WarpisError as exc:
+            if "pip install" not in str(exc):  # a broken bundled scene is a bug: say so
+                raise
+            missing.append(name)  # a Mitsuba scene without the mitsuba extra
+    lines = [_SUMMARY_HEAD] + [_summary_line(r) for r in rows]
+    if missing:
+        lines.append(f"also bundled, with the mitsuba extra (pip install \"warpis[mitsuba]\"): {', '.join(missing)}")
+    _emit({"scenes": rows, "need_mitsuba": missing}, args.json, "\n".join(lines))
     return 0
 
 
@@ -137,6 +147,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         lines.append(f"{e['mesh']:<28} {e['triangles']:>9} {e['radiance']:>10.4g} {e['area']:>10.4g} {e['power']:>10.4g}")
     lines.append("")
     lines.append("receiver groups: " + ", ".join(f"{g['name']} ({g['receivers']}, {g['material']})" for g in groups))
+    s["notes"] = list(scene.notes)
+    lines.extend(scene.notes)
     _emit(s, args.json, "\n".join(lines))
     return 0
 
@@ -390,8 +402,14 @@ def build_parser() -> argparse.ArgumentParser:
         # Raw text keeps the epilog's one line per vocabulary entry.
         raw = {"formatter_class": argparse.RawDescriptionHelpFormatter} if epilog else {}
         c = sub.add_parser(name, help=help, description=help, epilog=epilog, parents=[plugin], **raw)
-        c.add_argument("scene", help="a bundled scene's name (see 'warpis scenes') or a scene TOML path")
+        c.add_argument("scene", help="a bundled scene's name (see 'warpis scenes') or a scene file: TOML, or "
+                                     "Mitsuba 3 XML (needs warpis[mitsuba])")
         c.add_argument("--device", default="cpu", help="Warp device: cpu (default) or cuda[:N]")
+        c.add_argument("--channel", choices=("r", "g", "b", "y"), default=None,
+                       help="Mitsuba scenes: the colour channel warpis measures (default: the receivers file's "
+                            "'channel', else y, the luminance of linear sRGB); TOML scenes are grey")
+        c.add_argument("--receivers-file", metavar="FILE", default=None,
+                       help="Mitsuba scenes: the receivers file (default: <scene>.receivers.toml beside the XML)")
         c.add_argument("--json", action="store_true", help="print JSON instead of a table")
         return c
 

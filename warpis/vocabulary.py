@@ -312,5 +312,5 @@ class Material(Entry):
     keys: tuple[str, ...] = ()  # TOML keys of its table besides "type" (scenes/toml_source.py parses each)
     required: tuple[str, ...] = ()  # those of ``keys`` that have no default
     diffuse: bool  # ρ is constant: Lambert's closed form × lambert_scale is exact where unoccluded
-    lambert_scale: Callable[[np.ndarray], np.ndarray]  # albedo → the factor on Lambert's irradiance
+    lambert_scale: Callable[[Any, np.ndarray], np.ndarray]  # (Receivers, rows) → the factor on Lambert's irradiance
     bsdf_technique: str  # the technique that samples its BRDF

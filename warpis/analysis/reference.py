@@ -207,7 +207,7 @@ def _closed_form(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     for material in MATERIALS.values():
         mine = rx.material[idx] == material.code
         diffuse[mine] = material.diffuse
-        albedo[mine] = material.lambert_scale(rx.albedo[idx][mine])
+        albedo[mine] = material.lambert_scale(rx, idx[mine])
     return values * albedo, exact & diffuse, np.abs(values * albedo)
 
 

@@ -60,6 +60,9 @@ class SceneData:
     total_area: wp.float32
     total_power: wp.float32  # Σ radiance × area
     emitter_count: wp.int32
+    # roughplastic's precomputed transmittance (and internal reflectance) per distinct
+    # (distribution, alpha, eta) of the receivers: microfacet.plastic_table rows.
+    plastic_table: wp.array2d(dtype=wp.float32)
 
 
 @wp.struct
@@ -73,6 +76,14 @@ class ReceiverData:
     exponent: wp.array(dtype=wp.float32)
     view: wp.array(dtype=wp.vec3)  # unit direction towards the viewer
     slab: wp.array(dtype=wp.float32)  # self-hit slab height above the tangent plane
+    alpha: wp.array(dtype=wp.float32)  # microfacet parameters (kernels/shading.py)
+    distribution: wp.array(dtype=wp.int32)
+    sample_visible: wp.array(dtype=wp.int32)
+    eta: wp.array(dtype=wp.vec3)
+    k: wp.array(dtype=wp.vec3)
+    specular: wp.array(dtype=wp.vec3)
+    specular_weight: wp.array(dtype=wp.float32)
+    plastic_row: wp.array(dtype=wp.int32)  # row of SceneData.plastic_table, -1 for other materials
 
 
 def check_device(device: str, what: str = "device") -> str:
@@ -186,6 +197,25 @@ def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (lo - pad[:, None]).astype(np.float32), (hi + pad[:, None]).astype(np.float32)
 
 
+def plastic_rows(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """roughplastic's tables: one row per distinct (distribution, alpha, eta) among the
+    roughplastic receivers (a zero row when there is none), and each receiver's row (-1
+    for other materials).  Deterministic, so the two structs built from it agree."""
+    from .integrand import MATERIALS  # the integrand imports this module
+    from .microfacet import PLASTIC_TABLE_WIDTH, plastic_table
+
+    rx = scene.receivers
+    rows = np.full(len(rx), -1, np.int32)
+    plastic = np.flatnonzero(rx.material == MATERIALS["roughplastic"].code)
+    if len(plastic) == 0:
+        return np.zeros((1, PLASTIC_TABLE_WIDTH), np.float32), rows
+    keys = np.stack([rx.distribution[plastic].astype(np.float64), rx.alpha[plastic], rx.eta[plastic, 0]], axis=1)
+    unique, inverse = np.unique(keys, axis=0, return_inverse=True)
+    rows[plastic] = inverse.reshape(-1)
+    table = np.stack([plastic_table(int(d), float(a), float(e)) for d, a, e in unique]).astype(np.float32)
+    return table, rows
+
+
 def _scene_data(scene: Scene) -> tuple[Any, wp.Mesh, wp.Bvh]:
     """The SceneData struct of ``scene`` on the current device, with its mesh and BVH."""
     points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3)
@@ -206,6 +236,7 @@ def _scene_data(scene: Scene) -> tuple[Any, wp.Mesh, wp.Bvh]:
     d.total_area = float(scene.total_emitter_area)
     d.total_power = float(scene.total_power)
     d.emitter_count = int(scene.emitter_count)
+    d.plastic_table = wp.array(plastic_rows(scene)[0], dtype=wp.float32)
     return d, mesh, emitter_bvh
 
 
@@ -220,6 +251,14 @@ def _receiver_data(scene: Scene, d: Any) -> Any:
     rd.exponent = wp.array(r.exponent.astype(np.float32), dtype=wp.float32)
     rd.view = wp.array(r.view.astype(np.float32), dtype=wp.vec3)
     rd.slab = wp.zeros(len(r), dtype=wp.float32)
+    rd.alpha = wp.array(r.alpha.astype(np.float32), dtype=wp.float32)
+    rd.distribution = wp.array(r.distribution.astype(np.int32), dtype=wp.int32)
+    rd.sample_visible = wp.array(r.sample_visible.astype(np.int32), dtype=wp.int32)
+    rd.eta = wp.array(r.eta.astype(np.float32), dtype=wp.vec3)
+    rd.k = wp.array(r.k.astype(np.float32), dtype=wp.vec3)
+    rd.specular = wp.array(r.specular.astype(np.float32), dtype=wp.vec3)
+    rd.specular_weight = wp.array(r.specular_weight.astype(np.float32), dtype=wp.float32)
+    rd.plastic_row = wp.array(plastic_rows(scene)[1], dtype=wp.int32)
     wp.launch(_slab_kernel, dim=len(r), inputs=[d.mesh, d.points, d.indices, rd.position, rd.slab])
     return rd
 

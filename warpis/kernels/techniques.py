@@ -16,6 +16,12 @@ Techniques (entries of ``TECHNIQUES`` (below)):
 ``light-solid-angle``  a triangle picked in proportion to solid angle × radiance among those
                        whose front faces the receiver, then a uniform direction within its
                        spherical triangle (Arvo 1995).
+``bsdf``               the receiver material's own sampling, as Mitsuba 3 samples it: cosine
+                       for irradiance and lambert, the lobe for phong, visible normals (Heitz
+                       2018) or the whole distribution for roughconductor, and for
+                       roughplastic a choice between its specular and diffuse lobes (weight
+                       from its transmittance at the view) followed by either; the pdf sums
+                       both lobes' densities.
 
 The pdf convention, relied on by MIS and by the theory: ``technique_pdf(ω)`` is the density
 of the direction ω that ``sample_technique`` produces, whatever ω hits first.  For light
@@ -43,7 +49,9 @@ import warp as wp
 
 from ..vocabulary import Registry, Technique, UserEntries, UserEntry
 from .device import DeviceScene, ReceiverData, SceneData, upload
-from .integrand import ShadingPoint, shading_point
+from .integrand import PHONG as PHONG_MATERIAL
+from .integrand import ROUGHCONDUCTOR, ROUGHPLASTIC, ShadingPoint, shading_point
+from .microfacet import conductor_pdf, conductor_sample, plastic_pdf, plastic_sample
 from .warps import (cosine_hemisphere_pdf, phong_lobe_pdf, square_to_cosine_hemisphere, square_to_phong_lobe,
                     square_to_spherical_triangle, square_to_triangle, square_to_uniform_hemisphere, to_world,
                     triangle_solid_angle, uniform_hemisphere_pdf)
@@ -71,6 +79,11 @@ TECHNIQUES: Registry[Technique] = Registry("technique", [
     Technique(name="light-solid-angle", code=5, description="a uniform direction in a spherical triangle, picked by "
                                                             "solid angle × radiance (Arvo 1995)",
               light=True, inverse_pdf_integral=math.inf, cost=5.0),
+    Technique(name="bsdf", code=6, description="the receiver material's own BSDF sampling, as Mitsuba 3 does it: "
+                                               "cosine (irradiance, lambert), the lobe (phong), visible or all "
+                                               "microfacet normals (roughconductor), a lobe choice then either "
+                                               "(roughplastic)",
+              inverse_pdf_integral=math.inf),
 ])
 
 
@@ -81,6 +94,7 @@ PHONG = wp.constant(TECHNIQUES["phong"].code)
 LIGHT_AREA = wp.constant(TECHNIQUES["light-area"].code)
 LIGHT_POWER = wp.constant(TECHNIQUES["light-power"].code)
 LIGHT_SOLID_ANGLE = wp.constant(TECHNIQUES["light-solid-angle"].code)
+BSDF = wp.constant(TECHNIQUES["bsdf"].code)
 
 # Crossings a pdf evaluation remembers, so that a ray through an edge (or corner) shared
 # by several emitter triangles, which each of them reports, counts that crossing once.
@@ -279,8 +293,34 @@ def sample_light(tech: wp.int32, scene: SceneData, table: LightTable, sp: Shadin
 
 
 @wp.func
+def bsdf_pdf(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
+    """Solid-angle density of the receiver material's own BSDF sampling at ω."""
+    if sp.material == PHONG_MATERIAL:
+        return phong_lobe_pdf(wp.dot(w, sp.lobe_axis), sp.exponent)
+    if sp.material == ROUGHCONDUCTOR:
+        return conductor_pdf(sp, w)
+    if sp.material == ROUGHPLASTIC:
+        return plastic_pdf(scene.plastic_table, sp, w)
+    return cosine_hemisphere_pdf(wp.dot(w, sp.n))
+
+
+@wp.func
+def sample_bsdf(scene: SceneData, sp: ShadingPoint, u: wp.vec2) -> wp.vec3:
+    """The direction the receiver material's own BSDF sampling maps u to (zero if none)."""
+    if sp.material == PHONG_MATERIAL:
+        return to_world(square_to_phong_lobe(u, sp.exponent), sp.lobe_axis)
+    if sp.material == ROUGHCONDUCTOR:
+        return conductor_sample(sp, u)
+    if sp.material == ROUGHPLASTIC:
+        return plastic_sample(scene.plastic_table, sp, u)
+    return to_world(square_to_cosine_hemisphere(u), sp.n)
+
+
+@wp.func
 def technique_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, w: wp.vec3) -> float:
     """Solid-angle density with which technique ``tech`` produces direction ω."""
+    if tech == BSDF:
+        return bsdf_pdf(scene, sp, w)
     if tech == UNIFORM:
         return uniform_hemisphere_pdf(wp.dot(w, sp.n))
     if tech == COSINE:
@@ -293,6 +333,8 @@ def technique_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: Shadi
 @wp.func
 def sample_direction(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2) -> wp.vec3:
     """The direction that technique ``tech`` maps primary sample u to (zero if none)."""
+    if tech == BSDF:
+        return sample_bsdf(scene, sp, u)
     if tech == UNIFORM:
         return to_world(square_to_uniform_hemisphere(u), sp.n)
     if tech == COSINE:

@@ -36,11 +36,13 @@ DEFAULT_TRIALS = 400
 
 def default_techniques(scene: Scene) -> tuple[str, str]:
     """Light sampling plus the receivers' BSDF sampling: light-area + cosine where every
-    receiver is diffuse, else light-solid-angle + the lobe of the glossy material (of the
-    lowest code, should there be several)."""
+    receiver is diffuse, else light-solid-angle + the lobe of the glossy materials (``bsdf``,
+    each receiver's own sampling, when they have different lobes)."""
     materials = [MATERIALS.by_code(c) for c in np.unique(scene.receivers.material)]
-    lobes = [m.bsdf_technique for m in materials if not m.diffuse]
-    return ("light-solid-angle", lobes[0]) if lobes else ("light-area", "cosine")
+    lobes = {m.bsdf_technique for m in materials if not m.diffuse}
+    if not lobes:
+        return ("light-area", "cosine")
+    return ("light-solid-angle", lobes.pop() if len(lobes) == 1 else "bsdf")
 
 
 DEFAULT_RECEIVERS = 8

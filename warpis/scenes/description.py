@@ -28,6 +28,7 @@ from .. import limits
 from ..errors import WarpisError, fail
 from ..kernels.device import ReceiverData, SceneData, check_device, upload
 from ..kernels.integrand import MATERIALS
+from ..kernels.shading import DISTRIBUTIONS
 from ..vocabulary import Material
 
 # Emitter triangles whose area is below this fraction of their longest edge squared are
@@ -39,9 +40,11 @@ DEGENERATE_AREA = 1e-12
 # only label things (warpis info, figures), so renaming or moving a file keeps the digest.
 
 DIGEST_FIELDS = ("vertices", "triangles", "emission", "receivers.positions", "receivers.normals",
-                 "receivers.material", "receivers.albedo", "receivers.exponent", "receivers.view")
+                 "receivers.material", "receivers.albedo", "receivers.exponent", "receivers.view",
+                 "receivers.alpha", "receivers.distribution", "receivers.sample_visible", "receivers.eta",
+                 "receivers.k", "receivers.specular", "receivers.specular_weight")
 
-_DIGEST_FORMAT = b"warpis scene digest 1\0"  # a new encoding below gets a new number
+_DIGEST_FORMAT = b"warpis scene digest 2\0"  # a new encoding below gets a new number
 
 def _freeze(obj: Any, names: Sequence[str]) -> None:
     """Replace the arrays ``names`` of a frozen dataclass by read-only views: the digest
@@ -51,7 +54,13 @@ def _freeze(obj: Any, names: Sequence[str]) -> None:
         view.flags.writeable = False
         object.__setattr__(obj, name, view)
 
-_RECEIVER_ARRAYS = ("positions", "normals", "material", "albedo", "exponent", "view", "group")
+_RECEIVER_ARRAYS = ("positions", "normals", "material", "albedo", "exponent", "view", "group", "alpha",
+                    "distribution", "sample_visible", "eta", "k", "specular", "specular_weight")
+# Per-channel microfacet parameters (see kernels/shading.py): (R, 3) arrays.
+_CHANNEL_ARRAYS = ("eta", "k", "specular")
+# Microfacet parameters of receivers whose material has none (any valid value would do).
+MICROFACET_DEFAULTS = {"alpha": 0.1, "distribution": DISTRIBUTIONS["ggx"], "sample_visible": 1, "eta": 1.5, "k": 0.0,
+                       "specular": 1.0, "specular_weight": 0.5}
 
 @dataclass(frozen=True, eq=False)
 class Receivers:
@@ -66,8 +75,24 @@ class Receivers:
     group: np.ndarray  # (R,) int32, index into group_names
     group_names: list[str] = field(default_factory=list)
     grid_shape: tuple[int, int] | None = None  # (rows, cols) when the only group is a grid
+    # Microfacet materials (roughconductor, roughplastic; kernels/shading.py), defaults for
+    # the others: None → MICROFACET_DEFAULTS.
+    alpha: np.ndarray = None  # type: ignore[assignment]  # (R,) float64, isotropic roughness
+    distribution: np.ndarray = None  # type: ignore[assignment]  # (R,) int32, shading.DISTRIBUTIONS
+    sample_visible: np.ndarray = None  # type: ignore[assignment]  # (R,) int32, 0 or 1
+    eta: np.ndarray = None  # type: ignore[assignment]  # (R, 3) float64, per channel
+    k: np.ndarray = None  # type: ignore[assignment]  # (R, 3) float64, per channel
+    specular: np.ndarray = None  # type: ignore[assignment]  # (R, 3) reflectance × channel weight
+    specular_weight: np.ndarray = None  # type: ignore[assignment]  # (R,) roughplastic lobe choice
 
     def __post_init__(self) -> None:
+        count = len(self.positions)
+        for name, value in MICROFACET_DEFAULTS.items():
+            if getattr(self, name) is None:
+                shape = (count, 3) if name in _CHANNEL_ARRAYS else (count,)
+                kind = np.int32 if name in ("distribution", "sample_visible") else np.float64
+                fill = value / 3 if name == "specular" else value
+                object.__setattr__(self, name, np.full(shape, fill, kind))
         _freeze(self, _RECEIVER_ARRAYS)
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -106,6 +131,7 @@ class Scene:
     description: str = ""
     path: Path | None = None  # the scene file, for a scene loaded from one
     device: str = "cpu"  # Warp device of scene.data and of every kernel run on this scene
+    notes: tuple[str, ...] = ()  # what a source wants `warpis info` to say (colour channel, tessellation error)
 
     def __post_init__(self) -> None:
         _freeze(self, _SCENE_ARRAYS)
@@ -121,7 +147,9 @@ class Scene:
     @classmethod
     def from_arrays(cls, vertices: Any, triangles: Any, emission: Any, positions: Any, normals: Any, *,
                     material: str | Any = "irradiance", albedo: Any = 1.0, exponent: Any = 1.0,
-                    view: Any = (0.0, 0.0, 1.0), group: Any = None, group_names: Sequence[str] | None = None,
+                    view: Any = (0.0, 0.0, 1.0), alpha: Any = None, distribution: str | Any = "ggx",
+                    sample_visible: Any = True, eta: Any = None, k: Any = None, specular: Any = None,
+                    specular_weight: Any = None, group: Any = None, group_names: Sequence[str] | None = None,
                     grid_shape: tuple[int, int] | None = None, triangle_mesh: Any = None,
                     mesh_names: Sequence[str] | None = None, name: str = "arrays", description: str = "",
                     device: str = "cpu") -> Scene:
@@ -143,6 +171,13 @@ class Scene:
         albedo, exponent, view
             Material parameters, one for all or one per receiver; ``view`` (the direction
             towards the viewer, normalised) is (3,) or (R, 3).
+        alpha, distribution, sample_visible, eta, k, specular, specular_weight
+            Microfacet parameters (roughconductor, roughplastic), one for all or one per
+            receiver, grey (the same in every colour channel): roughness, ``"ggx"`` or
+            ``"beckmann"``, visible-normal sampling, the index of refraction (conductor:
+            its real part; roughplastic: int_ior/ext_ior), the conductor's extinction, the
+            specular reflectance, and roughplastic's lobe-choice weight (default
+            specular/(albedo + specular), as Mitsuba computes it).
         group, group_names, grid_shape
             Receiver group index of each receiver (default 0) and the groups' names
             (default ``["receivers"]``); (rows, cols) when the receivers form a grid.
@@ -162,8 +197,10 @@ class Scene:
                               f"{description!r}")
         where = f"scene {name!r}"
         check_device(device)
+        microfacet = {"alpha": alpha, "distribution": distribution, "sample_visible": sample_visible, "eta": eta,
+                      "k": k, "specular": specular, "specular_weight": specular_weight}
         rx = _receivers_from_arrays(where, positions, normals, material, albedo, exponent, view, group,
-                                    group_names, grid_shape)
+                                    group_names, grid_shape, microfacet)
         names = [name] if mesh_names is None else mesh_names
         return _assemble(where, lambda m: f"{where}: mesh {names[m]!r}", "give some triangle an emission > 0",
                          name=name, vertices=vertices, triangles=triangles, emission=emission, receivers=rx,
@@ -370,7 +407,7 @@ def _check_groups(group: np.ndarray, names: Any, where: object) -> None:
 
 def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: Any, albedo: Any, exponent: Any,
                            view: Any, group: Any, group_names: Sequence[str] | None,
-                           grid_shape: Any) -> Receivers:
+                           grid_shape: Any, microfacet: dict[str, Any]) -> Receivers:
     """Receivers from arrays, broadcast to one row per receiver, directions normalised."""
     p = _array(positions, "positions", where, (None, 3), "(R, 3)")
     count = len(p)
@@ -387,7 +424,37 @@ def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: A
         exponent=_per_receiver(exponent, "exponent", where, count),
         view=_unit(v, "view", where), group=g.astype(np.int32), group_names=names,
         grid_shape=_grid_shape(grid_shape, count, where),
+        **grey_microfacet(microfacet, _per_receiver(albedo, "albedo", where, count), count, where),
     )
+
+
+def grey_microfacet(values: dict[str, Any], albedo: np.ndarray, count: int, where: object) -> dict[str, np.ndarray]:
+    """Receivers' microfacet arrays from grey values (one for all, or one per receiver;
+    None: the default): every channel the same, the specular reflectance split evenly
+    over the three so that their sum is the grey value."""
+    out: dict[str, np.ndarray] = {}
+    for name, default in MICROFACET_DEFAULTS.items():
+        value = values.get(name)
+        if name == "specular_weight":
+            continue
+        if name == "distribution" and isinstance(value, str):
+            if value not in DISTRIBUTIONS:
+                raise fail(where, f"distribution {value!r}: expected one of {', '.join(DISTRIBUTIONS)}")
+            value = DISTRIBUTIONS[value]
+        if name == "sample_visible" and value is not None and np.asarray(value).dtype == bool:
+            value = np.asarray(value).astype(np.int64)
+        integer = name in ("distribution", "sample_visible")
+        a = _per_receiver(default if value is None else value, name, where, count, integer=integer)
+        if name in _CHANNEL_ARRAYS:
+            a = np.repeat(a[:, None] / (3.0 if name == "specular" else 1.0), 3, axis=1)
+        out[name] = a.astype(np.int32) if integer else a
+    weight = values.get("specular_weight")
+    if weight is None:  # Mitsuba's specular_sampling_weight: s_mean / (d_mean + s_mean)
+        s = out["specular"].sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            weight = np.where(s + albedo > 0, s / (s + albedo), 0.5)
+    out["specular_weight"] = _per_receiver(weight, "specular_weight", where, count)
+    return out
 
 def _check_receivers(rx: Receivers, where: object) -> None:
     """Every receiver array: shapes, the kernels' limits, directions, material codes, groups."""
@@ -396,7 +463,7 @@ def _check_receivers(rx: Receivers, where: object) -> None:
         raise fail(where, f"receivers: positions must have shape (R, 3) with R >= 1, got {rx.positions.shape}")
     _receiver_count(count, "receivers", where)
     for name in _RECEIVER_ARRAYS:
-        expected = (count, 3) if name in ("positions", "normals", "view") else (count,)
+        expected = (count, 3) if name in ("positions", "normals", "view", *_CHANNEL_ARRAYS) else (count,)
         if getattr(rx, name).shape != expected:
             raise fail(where, f"receivers: {name} has shape {getattr(rx, name).shape}, expected {expected}")
     _coordinates(rx.positions, "positions", where)
@@ -405,8 +472,37 @@ def _check_receivers(rx: Receivers, where: object) -> None:
     _check_codes(rx.material, where)
     _within(where, limits.float32_values, rx.albedo, "albedo")
     _within(where, limits.float32_values, rx.exponent, "exponent")
+    _check_microfacet(rx, where)
     _check_groups(rx.group, rx.group_names, where)
     _grid_shape(rx.grid_shape, count, where)
+
+# Roughness below this makes D's peak (1/(π α²)) overflow the float32 products f is made
+# of at grazing half-vectors; Mitsuba's own smallest useful alpha is far above it.
+MIN_ALPHA = 1e-4
+
+
+def _first_bad(ok: np.ndarray, values: np.ndarray, what: str, rule: str, where: object) -> None:
+    if not ok.all():
+        i = int(np.argmin(ok.reshape(len(ok), -1).all(axis=1)))
+        raise fail(where, f"{what} of receiver {i} is {values[i]!r}: {rule}")
+
+
+def _check_microfacet(rx: Receivers, where: object) -> None:
+    """The microfacet parameters: their kernels' domains (every receiver, whatever its material)."""
+    with np.errstate(invalid="ignore"):
+        _first_bad((rx.alpha >= MIN_ALPHA) & (rx.alpha <= 1e3), rx.alpha, "alpha",
+                   f"expected a roughness in [{MIN_ALPHA:g}, 1000]", where)
+        _first_bad(np.isin(rx.distribution, list(DISTRIBUTIONS.values())), rx.distribution, "distribution",
+                   f"expected a code of {DISTRIBUTIONS}", where)
+        _first_bad(np.isin(rx.sample_visible, (0, 1)), rx.sample_visible, "sample_visible", "expected 0 or 1", where)
+        _first_bad((rx.eta > 0) & (rx.eta <= 1e3), rx.eta, "eta", "expected an index of refraction in (0, 1000]",
+                   where)
+        _first_bad((rx.k >= 0) & (rx.k <= 1e3), rx.k, "k", "expected an extinction coefficient in [0, 1000]", where)
+        _first_bad((rx.specular >= 0) & (rx.specular <= 1e3), rx.specular, "specular",
+                   "expected a reflectance in [0, 1000]", where)
+        _first_bad((rx.specular_weight >= 0) & (rx.specular_weight <= 1), rx.specular_weight, "specular_weight",
+                   "expected a probability in [0, 1]", where)
+
 
 def _geometry(vertices: Any, triangles: Any, where: object) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) float64 vertices the kernels can hold and (T, 3) int32 indices into them."""
@@ -467,7 +563,7 @@ def _drop_needles(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndar
 
 def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, name: str, vertices: Any,
               triangles: Any, emission: Any, receivers: Receivers, triangle_mesh: Any, mesh_names: Any,
-              description: str, device: str, path: Path | None = None) -> Scene:
+              description: str, device: str, path: Path | None = None, notes: tuple[str, ...] = ()) -> Scene:
     """The one gate of every source (a scene file, arrays): each array against the kernels'
     limits, degenerate emitters dropped, at least one emitter → a Scene.
 
@@ -482,4 +578,4 @@ def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, 
     if not (e > 0).any():
         raise fail(where, f"the scene has no emitter ({hint})")
     return Scene(name=name, vertices=v, triangles=t, emission=e, receivers=receivers, triangle_mesh=owner,
-                 mesh_names=names, description=description, path=path, device=device)
+                 mesh_names=names, description=description, path=path, device=device, notes=tuple(notes))

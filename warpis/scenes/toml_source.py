@@ -20,7 +20,9 @@ import trimesh
 from .. import limits
 from ..errors import WarpisError, fail
 from ..kernels.integrand import MATERIALS
-from .description import Receivers, Scene, _assemble, _coordinates, _receiver_count, _unit
+from ..kernels.shading import DISTRIBUTIONS
+from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
+                          _unit, grey_microfacet)
 
 
 def _check_keys(table: dict, allowed: set[str], where: str, file: Path) -> None:
@@ -141,10 +143,35 @@ def _unit_vector(value: Any, what: str, file: Path) -> np.ndarray:
 # The keys a material table may hold (each material lists its own in MATERIALS (kernels/integrand.py)):
 # how each is read, and its value for a material without it (or that leaves it out).
 
+def _distribution(value: Any, what: str, file: Path) -> int:
+    if value not in DISTRIBUTIONS:
+        raise fail(file, f"{what} must be one of {', '.join(repr(d) for d in DISTRIBUTIONS)}, got {value!r}")
+    return DISTRIBUTIONS[value]
+
+def _boolean(value: Any, what: str, file: Path) -> int:
+    if not isinstance(value, bool):
+        raise fail(file, f"{what} must be true or false, got {value!r}")
+    return int(value)
+
+def _in_range(low: float, high: float, open_low: bool = False) -> Callable[[Any, str, Path], float]:
+    def parse(value: Any, what: str, file: Path) -> float:
+        x = _number(value, what, file)
+        if not (low < x if open_low else low <= x) or x > high:
+            raise fail(file, f"{what} must be in {'(' if open_low else '['}{low:g}, {high:g}], got {value!r}")
+        return x
+    return parse
+
 MATERIAL_PARAMETERS: dict[str, tuple[Callable[[Any, str, Path], Any], Any]] = {
     "albedo": (_float32_number, 1.0),
     "exponent": (_float32_number, 1.0),
     "view": (_unit_vector, np.array([0.0, 0.0, 1.0])),
+    # Microfacet materials (grey: the same in every colour channel; see kernels/shading.py).
+    "alpha": (_in_range(MIN_ALPHA, 1e3), MICROFACET_DEFAULTS["alpha"]),
+    "distribution": (_distribution, MICROFACET_DEFAULTS["distribution"]),
+    "sample_visible": (_boolean, MICROFACET_DEFAULTS["sample_visible"]),
+    "eta": (_in_range(0.0, 1e3, open_low=True), MICROFACET_DEFAULTS["eta"]),
+    "k": (_in_range(0.0, 1e3), MICROFACET_DEFAULTS["k"]),
+    "specular": (_in_range(0.0, 1e3), MICROFACET_DEFAULTS["specular"]),
 }
 
 def _material(spec: Any, where: str, file: Path) -> dict[str, Any]:
@@ -243,6 +270,8 @@ def _receivers(doc: dict, file: Path) -> Receivers:
     ]
     count = [len(g["points"]) for g in groups]
     _receiver_count(sum(count), "[[receivers]]", file)
+    microfacet = [grey_microfacet(g["material"], np.full(c, g["material"]["albedo"]), c, file)
+                  for g, c in zip(groups, count)]
     return Receivers(
         positions=np.vstack([g["points"] for g in groups]),
         normals=np.vstack([g["normals"] for g in groups]),
@@ -253,6 +282,7 @@ def _receivers(doc: dict, file: Path) -> Receivers:
         group=np.concatenate([np.full(c, i, np.int32) for i, c in enumerate(count)]),
         group_names=[g["name"] for g in groups],
         grid_shape=groups[0]["grid"] if len(groups) == 1 else None,
+        **{name: np.concatenate([m[name] for m in microfacet]) for name in microfacet[0]},
     )
 
 def read_toml(file: Path) -> dict:
