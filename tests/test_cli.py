@@ -265,3 +265,27 @@ def test_estimator_help_lists_the_registered_vocabulary(cli):
         for registry in (PATTERNS, COMBINERS, TECHNIQUES):
             for entry in registry.values():
                 assert f"  {entry.name} " in result.out and entry.description in result.out, (command, entry.name)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (("info", "occluded-quad", "--receivers-file", "elsewhere.toml"), "Mitsuba"),
+    (("info", "mitsuba-veach-plates", "--channel", "q"), "--channel"),
+    (("info", "mitsuba-veach-plates", "--receivers-file", "no-such-receivers.toml"), "no-such-receivers.toml"),
+])
+def test_mitsuba_options_refuse_bad_values_in_one_line(args, needle):
+    """--channel and --receivers-file: a bad value, or a receivers file for a TOML scene,
+    is one line and exit 2, nothing on stdout."""
+    pytest.importorskip("mitsuba")
+    line = _one_error_line(run_warpis(*args))
+    assert needle in line, line
+
+
+def test_info_on_a_mitsuba_scene_says_channel_materials_and_tessellation(cli):
+    """`warpis info` on an XML scene prints its triangles, emitters, the colour channel,
+    each shape's material and each analytic emitter's tessellation error."""
+    pytest.importorskip("mitsuba")
+    result = cli("info", "mitsuba-veach-plates", "--channel", "g")
+    assert result.status == 0, result.err
+    assert "5132" in result.out and "colour channel g" in result.out
+    assert "roughconductor ggx alpha=0.01" in result.out
+    assert result.out.count("irradiance error") == 4

@@ -1027,3 +1027,32 @@ def test_readme_from_arrays_example_runs():
     exec(compile(code, "README.md", "exec"), namespace)
     scene = namespace["scene"]
     assert scene.emitter_count == 2 and len(scene.receivers) == 2 and namespace["x"].shape == (2, 1000)
+
+
+@pytest.mark.parametrize("key,value,needle", [
+    ("alpha", 0.0, "alpha must be in [0.0001, 1000]"),
+    ("alpha", "rough", "alpha must be a number"),
+    ("distribution", "phong", "distribution must be one of 'beckmann', 'ggx'"),
+    ("sample_visible", 1, "sample_visible must be true or false"),
+    ("eta", 0.0, "eta must be in (0, 1000]"),
+    ("k", -1.0, "k must be in [0, 1000]"),
+    ("specular", float("inf"), "specular must be finite"),
+])
+def test_microfacet_keys_refuse_bad_values_in_one_line(tmp_path, key, value, needle):
+    """Each microfacet key of a scene file's material: a value outside its domain is one
+    line naming the key, the file and what is allowed."""
+    table = {"type": "roughconductor", "alpha": 0.2, "eta": 1.5, "k": 2.0, "view": [0.0, 0.0, 1.0], key: value}
+    with pytest.raises(WarpisError) as err:
+        load_scene(write_scene(tmp_path, material=table))
+    assert needle in str(err.value) and "\n" not in str(err.value), str(err.value)
+
+
+def test_from_arrays_refuses_microfacet_values_outside_their_domain():
+    """Scene.from_arrays checks the microfacet arrays like a scene file: one line naming
+    the array and the first bad receiver."""
+    for changes, needle in [({"alpha": -1.0}, "alpha of receiver 0"), ({"distribution": "phong"}, "distribution"),
+                            ({"sample_visible": 2}, "sample_visible of receiver 0"),
+                            ({"eta": [1.5, 0.0]}, "eta of receiver 1"), ({"specular_weight": 1.5}, "specular_weight")]:
+        with pytest.raises(WarpisError) as err:
+            warpis.Scene.from_arrays(**_arrays(material="roughconductor", view=[0.0, 0.0, 1.0], **changes))
+        assert needle in str(err.value) and "\n" not in str(err.value), str(err.value)
