@@ -33,10 +33,8 @@ The scenes:
 from __future__ import annotations
 
 import argparse
-import filecmp
 import shutil
 import sys
-import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,6 +43,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from make_scenes import check as check_tree
 from make_scenes import (VEACH_CAMERA, VEACH_LIGHT_ROW, VEACH_LIGHT_X, VEACH_PLATES, clean, toml_points, toml_value,
                          unit, veach_plate, write_ply)
 
@@ -734,29 +733,9 @@ def write_all(root: Path) -> None:
         write_scene(SCENE_BUILDERS[name](), root)
 
 
-def diff_trees(fresh: Path, committed: Path) -> list[str]:
-    """List the files that differ between two scene roots."""
-    problems = []
-    for name in SCENE_NAMES:
-        a, b = fresh / name, committed / name
-        names_a = {p.name for p in a.iterdir()}
-        names_b = {p.name for p in b.iterdir()} if b.is_dir() else set()
-        problems += [f"{name}/{f}: missing" for f in sorted(names_a - names_b)]
-        problems += [f"{name}/{f}: not generated" for f in sorted(names_b - names_a)]
-        problems += [f"{name}/{f}: differs" for f in sorted(names_a & names_b)
-                     if not filecmp.cmp(a / f, b / f, shallow=False)]
-    return problems
-
-
 def check(root: Path) -> int:
-    """Regenerate into a temporary folder and compare with ``root``."""
-    with tempfile.TemporaryDirectory() as tmp:
-        write_all(Path(tmp))
-        problems = diff_trees(Path(tmp), root)
-    for line in problems:
-        print(line)
-    print("scenes differ from a fresh generation" if problems else "scenes are up to date")
-    return 1 if problems else 0
+    """Regenerate into a temporary folder and compare with ``root`` (make_scenes.py's check)."""
+    return check_tree(root, write_all, SCENE_NAMES)
 
 
 def main(argv: list[str] | None = None) -> int:

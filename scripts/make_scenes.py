@@ -24,7 +24,7 @@ import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import trimesh
@@ -745,10 +745,10 @@ def write_all(root: Path) -> None:
         write_scene(SCENE_BUILDERS[name](), root)
 
 
-def diff_trees(fresh: Path, committed: Path) -> list[str]:
-    """List the files that differ between two scene roots."""
+def diff_trees(fresh: Path, committed: Path, names: Sequence[str] = SCENE_NAMES) -> list[str]:
+    """List the files of the scenes ``names`` that differ between two scene roots."""
     problems = []
-    for name in SCENE_NAMES:
+    for name in names:
         a, b = fresh / name, committed / name
         names_a = {p.name for p in a.iterdir()}
         names_b = {p.name for p in b.iterdir()} if b.is_dir() else set()
@@ -759,11 +759,11 @@ def diff_trees(fresh: Path, committed: Path) -> list[str]:
     return problems
 
 
-def check(root: Path) -> int:
-    """Regenerate into a temporary folder and compare with ``root``."""
+def check(root: Path, write: Callable[[Path], None] = write_all, names: Sequence[str] = SCENE_NAMES) -> int:
+    """Regenerate the scenes ``names`` with ``write`` into a temporary folder and compare with ``root``."""
     with tempfile.TemporaryDirectory() as tmp:
-        write_all(Path(tmp))
-        problems = diff_trees(Path(tmp), root)
+        write(Path(tmp))
+        problems = diff_trees(Path(tmp), root, names)
     for line in problems:
         print(line)
     print("scenes differ from a fresh generation" if problems else "scenes are up to date")
