@@ -45,7 +45,7 @@ import warp as wp
 from scipy.special import erf
 
 from warpis.kernels import microfacet as mf
-from warpis.kernels.shading import ShadingPoint
+from warpis.kernels.shading import ShadingPoint, with_frame
 from warpis.testing import ChiSquareTest, orthonormal_frame
 
 CONDUCTOR = wp.constant(3)  # material codes of integrand.MATERIALS
@@ -94,7 +94,7 @@ def build_sp(material: wp.int32, prm: Params, n: wp.vec3, wi: wp.vec3) -> Shadin
     sp.specular = prm.specular
     sp.specular_weight = prm.specular_weight
     sp.plastic_row = prm.plastic_row
-    return sp
+    return with_frame(sp)
 
 
 @wp.func

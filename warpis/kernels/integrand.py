@@ -28,7 +28,7 @@ import warp as wp
 from ..vocabulary import Material, Registry
 from .device import ReceiverData, SceneData, upload
 from .microfacet import conductor_brdf, plastic_brdf
-from .shading import ShadingPoint
+from .shading import ShadingPoint, with_frame
 from .warps import INV_2PI, INV_PI
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
@@ -111,7 +111,7 @@ def shading_point(scene: SceneData, recv: ReceiverData, r: wp.int32) -> ShadingP
     sp.specular = recv.specular[r]
     sp.specular_weight = recv.specular_weight[r]
     sp.plastic_row = recv.plastic_row[r]
-    return sp
+    return with_frame(sp)
 
 
 @wp.func

@@ -82,8 +82,9 @@ u.x within the chosen interval, which leaves the density unchanged and keeps str
 as strata of each lobe's square.  The ``nonlinear`` option is not modelled.
 
 The functions take directions in world space (``sp.n``, ``sp.wi`` and ``wo`` unit
-vectors) and work in the local frame of :func:`.warps.frame` about ``sp.n``; the BSDFs
-are isotropic, so the choice of tangents does not matter.
+vectors) and work in the shading point's frame (``sp.t``, ``sp.b``, ``sp.n``, with the
+view ``sp.wi_local`` in it: :func:`.shading.with_frame`, once per shading point); the
+BSDFs are isotropic, so the choice of tangents does not matter.
 """
 
 from __future__ import annotations
@@ -95,8 +96,8 @@ import numpy as np
 import warp as wp
 from scipy.special import erf, erfinv
 
-from .shading import BECKMANN, ShadingPoint
-from .warps import INV_PI, PI, frame, square_to_concentric_disk, square_to_cosine_hemisphere
+from .shading import BECKMANN, ShadingPoint, from_shading, to_shading
+from .warps import INV_PI, PI, square_to_concentric_disk, square_to_cosine_hemisphere
 
 __all__ = [
     "PLASTIC_TABLE_WIDTH", "ROUGH_TRANSMITTANCE_RES", "conductor_brdf", "conductor_pdf", "conductor_sample",
@@ -117,23 +118,6 @@ _D_FLOOR = wp.constant(D_FLOOR)
 _INV_SQRT_PI = wp.constant(0.56418958354775628695)
 _ONE_MINUS_ULP = wp.constant(0.99999994)  # largest float32 below 1
 _FOUR_EPS = wp.constant(4.0 * 5.9604645e-8)  # Frame3f's threshold on sin²θ: 4 × float32 ε (2⁻²⁴)
-
-
-# --------------------------------------------------------------------------- frames
-
-
-@wp.func
-def to_local(v: wp.vec3, n: wp.vec3) -> wp.vec3:
-    """``v`` in the frame of :func:`.warps.frame` about ``n`` (z along ``n``)."""
-    t, b = frame(n)
-    return wp.vec3(wp.dot(v, t), wp.dot(v, b), wp.dot(v, n))
-
-
-@wp.func
-def from_local(v: wp.vec3, n: wp.vec3) -> wp.vec3:
-    """Inverse of :func:`to_local`."""
-    t, b = frame(n)
-    return v[0] * t + v[1] * b + v[2] * n
 
 
 @wp.func
@@ -389,8 +373,8 @@ def conductor_brdf(sp: ShadingPoint, wo: wp.vec3) -> float:
 
     Reads sp.n, sp.wi, sp.alpha, sp.distribution, sp.eta, sp.k, sp.specular.
     """
-    wi_l = to_local(sp.wi, sp.n)
-    wo_l = to_local(wo, sp.n)
+    wi_l = sp.wi_local
+    wo_l = to_shading(sp, wo)
     if wi_l[2] <= 0.0 or wo_l[2] <= 0.0:
         return 0.0
     alpha = clamped_alpha(sp)
@@ -412,8 +396,8 @@ def conductor_pdf(sp: ShadingPoint, wo: wp.vec3) -> float:
 
     Reads sp.n, sp.wi, sp.alpha, sp.distribution, sp.sample_visible.
     """
-    wi_l = to_local(sp.wi, sp.n)
-    wo_l = to_local(wo, sp.n)
+    wi_l = sp.wi_local
+    wo_l = to_shading(sp, wo)
     if wi_l[2] <= 0.0 or wo_l[2] <= 0.0:
         return 0.0
     h = wp.normalize(wi_l + wo_l)
@@ -432,7 +416,7 @@ def conductor_sample(sp: ShadingPoint, u: wp.vec2) -> wp.vec3:
     normal, which rounding can leave positive where its ``pdf`` at wo is 0).  Reads
     sp.n, sp.wi, sp.alpha, sp.distribution, sp.sample_visible.
     """
-    wi_l = to_local(sp.wi, sp.n)
+    wi_l = sp.wi_local
     if wi_l[2] <= 0.0:
         return wp.vec3(0.0, 0.0, 0.0)
     m = sample_normal(sp.distribution, clamped_alpha(sp), sp.sample_visible, wi_l, u)
@@ -441,7 +425,7 @@ def conductor_sample(sp: ShadingPoint, u: wp.vec2) -> wp.vec3:
         return wp.vec3(0.0, 0.0, 0.0)
     # Where rounding leaves the density at wo 0 (the 1e-20 floor of D), the caller's pdf
     # (techniques.sample_technique evaluates it once) is 0, which fails the sample.
-    return wp.normalize(from_local(wo_l, sp.n))
+    return wp.normalize(from_shading(sp, wo_l))
 
 
 # --------------------------------------------------------------------------- roughplastic
@@ -475,8 +459,8 @@ def plastic_brdf(table: wp.array2d(dtype=wp.float32), sp: ShadingPoint, wo: wp.v
     Reads sp.n, sp.wi, sp.alpha, sp.distribution, sp.eta[0], sp.specular, sp.albedo,
     sp.plastic_row.
     """
-    wi_l = to_local(sp.wi, sp.n)
-    wo_l = to_local(wo, sp.n)
+    wi_l = sp.wi_local
+    wo_l = to_shading(sp, wo)
     if wi_l[2] <= 0.0 or wo_l[2] <= 0.0:
         return 0.0
     eta = sp.eta[0]
@@ -499,8 +483,8 @@ def plastic_pdf(table: wp.array2d(dtype=wp.float32), sp: ShadingPoint, wo: wp.ve
     Reads sp.n, sp.wi, sp.alpha, sp.distribution, sp.sample_visible, sp.specular_weight,
     sp.plastic_row.
     """
-    wi_l = to_local(sp.wi, sp.n)
-    wo_l = to_local(wo, sp.n)
+    wi_l = sp.wi_local
+    wo_l = to_shading(sp, wo)
     if wi_l[2] <= 0.0 or wo_l[2] <= 0.0:
         return 0.0
     p_spec = plastic_specular_probability(table, sp, wi_l[2])
@@ -519,7 +503,7 @@ def plastic_sample(table: wp.array2d(dtype=wp.float32), sp: ShadingPoint, u: wp.
     direction where :func:`plastic_pdf` is 0 (that test through the caller's pdf, as for
     the conductor).  Reads what :func:`plastic_pdf` reads.
     """
-    wi_l = to_local(sp.wi, sp.n)
+    wi_l = sp.wi_local
     if wi_l[2] <= 0.0:
         return wp.vec3(0.0, 0.0, 0.0)
     p_spec = plastic_specular_probability(table, sp, wi_l[2])
@@ -534,7 +518,7 @@ def plastic_sample(table: wp.array2d(dtype=wp.float32), sp: ShadingPoint, u: wp.
     if wo_l[2] <= 0.0:
         return wp.vec3(0.0, 0.0, 0.0)
     # A density of 0 at wo fails the sample through the caller's pdf, as for the conductor.
-    return wp.normalize(from_local(wo_l, sp.n))
+    return wp.normalize(from_shading(sp, wo_l))
 
 
 # --------------------------------------------------------------------------- the plastic table (numpy)

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .warps import frame
+
 # Microfacet distributions, numbered as Mitsuba 3 numbers them (MicrofacetType).
 BECKMANN = wp.constant(0)
 GGX = wp.constant(1)
@@ -33,6 +35,9 @@ class ShadingPoint:
     albedo: float  # lambert/phong albedo; roughplastic's diffuse reflectance
     exponent: float  # phong
     wi: wp.vec3  # unit direction towards the viewer
+    t: wp.vec3  # tangent frame (t, b, n) of warps.frame: set by with_frame
+    b: wp.vec3
+    wi_local: wp.vec3  # wi in that frame
     lobe_axis: wp.vec3  # mirror direction of the view about n (Phong)
     # Microfacet materials (roughconductor, roughplastic).
     alpha: float  # isotropic roughness
@@ -43,3 +48,26 @@ class ShadingPoint:
     specular: wp.vec3  # specular reflectance × the channel's output weight
     specular_weight: float  # roughplastic: Mitsuba's specular_sampling_weight
     plastic_row: wp.int32  # roughplastic: row of SceneData.plastic_table, else -1
+
+
+@wp.func
+def with_frame(sp: ShadingPoint) -> ShadingPoint:
+    """``sp`` with its tangent frame about n and the view in it: computed once per shading
+    point (a trial), not in every sample and pdf of a microfacet material."""
+    t, b = frame(sp.n)
+    sp.t = t
+    sp.b = b
+    sp.wi_local = wp.vec3(wp.dot(sp.wi, t), wp.dot(sp.wi, b), wp.dot(sp.wi, sp.n))
+    return sp
+
+
+@wp.func
+def to_shading(sp: ShadingPoint, v: wp.vec3) -> wp.vec3:
+    """World ``v`` in the shading point's frame (z along n)."""
+    return wp.vec3(wp.dot(v, sp.t), wp.dot(v, sp.b), wp.dot(v, sp.n))
+
+
+@wp.func
+def from_shading(sp: ShadingPoint, v: wp.vec3) -> wp.vec3:
+    """Inverse of :func:`to_shading`."""
+    return v[0] * sp.t + v[1] * sp.b + v[2] * sp.n
