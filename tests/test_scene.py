@@ -1029,6 +1029,18 @@ def test_readme_from_arrays_example_runs():
     assert scene.emitter_count == 2 and len(scene.receivers) == 2 and namespace["x"].shape == (2, 1000)
 
 
+def test_roughplastic_of_index_one_is_refused_in_one_line(tmp_path):
+    """A roughplastic whose int_ior/ext_ior is 1 (its tables have no meaning) is refused
+    when the scene loads, in one line, rather than failing later in the upload; a
+    conductor with eta = 1 is a valid conductor."""
+    table = {"type": "roughplastic", "alpha": 0.2, "eta": 1.0, "view": [0.0, 0.0, 1.0]}
+    with pytest.raises(WarpisError) as err:
+        load_scene(write_scene(tmp_path / "plastic", material=table))
+    assert "must differ from 1" in str(err.value) and "\n" not in str(err.value)
+    conductor = {"type": "roughconductor", "alpha": 0.2, "eta": 1.0, "k": 2.0, "view": [0.0, 0.0, 1.0]}
+    assert load_scene(write_scene(tmp_path / "conductor", material=conductor)).receivers.eta[0, 0] == 1.0
+
+
 @pytest.mark.parametrize("key,value,needle", [
     ("alpha", 0.0, "alpha must be in [0.0001, 1000]"),
     ("alpha", "rough", "alpha must be a number"),
@@ -1052,7 +1064,8 @@ def test_from_arrays_refuses_microfacet_values_outside_their_domain():
     the array and the first bad receiver."""
     for changes, needle in [({"alpha": -1.0}, "alpha of receiver 0"), ({"distribution": "phong"}, "distribution"),
                             ({"sample_visible": 2}, "sample_visible of receiver 0"),
-                            ({"eta": [1.5, 0.0]}, "eta of receiver 1"), ({"specular_weight": 1.5}, "specular_weight")]:
+                            ({"eta": [1.5, 0.0]}, "eta of receiver 1"), ({"specular_weight": 1.5}, "specular_weight"),
+                            ({"material": "roughplastic", "eta": [1.5, 1.0]}, "eta of receiver 1")]:
         with pytest.raises(WarpisError) as err:
-            warpis.Scene.from_arrays(**_arrays(material="roughconductor", view=[0.0, 0.0, 1.0], **changes))
+            warpis.Scene.from_arrays(**_arrays(**({"material": "roughconductor", "view": [0.0, 0.0, 1.0]} | changes)))
         assert needle in str(err.value) and "\n" not in str(err.value), str(err.value)

@@ -200,7 +200,7 @@ def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def plastic_rows(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """roughplastic's tables: one row per distinct (distribution, alpha, eta) among the
     roughplastic receivers (a zero row when there is none), and each receiver's row (-1
-    for other materials).  Deterministic, so the two structs built from it agree."""
+    for other materials), computed once per upload for both structs."""
     from .integrand import MATERIALS  # the integrand imports this module
     from .microfacet import PLASTIC_TABLE_WIDTH, plastic_table
 
@@ -216,7 +216,7 @@ def plastic_rows(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return table, rows
 
 
-def _scene_data(scene: Scene) -> tuple[Any, wp.Mesh, wp.Bvh]:
+def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, wp.Bvh]:
     """The SceneData struct of ``scene`` on the current device, with its mesh and BVH."""
     points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3)
     indices = wp.array(scene.triangles.reshape(-1).astype(np.int32), dtype=wp.int32)
@@ -236,11 +236,11 @@ def _scene_data(scene: Scene) -> tuple[Any, wp.Mesh, wp.Bvh]:
     d.total_area = float(scene.total_emitter_area)
     d.total_power = float(scene.total_power)
     d.emitter_count = int(scene.emitter_count)
-    d.plastic_table = wp.array(plastic_rows(scene)[0], dtype=wp.float32)
+    d.plastic_table = wp.array(plastic_table, dtype=wp.float32)
     return d, mesh, emitter_bvh
 
 
-def _receiver_data(scene: Scene, d: Any) -> Any:
+def _receiver_data(scene: Scene, d: Any, plastic_row: np.ndarray) -> Any:
     """The ReceiverData struct of ``scene``, its slabs computed against the mesh of ``d``."""
     r = scene.receivers
     rd = ReceiverData()
@@ -258,7 +258,7 @@ def _receiver_data(scene: Scene, d: Any) -> Any:
     rd.k = wp.array(r.k.astype(np.float32), dtype=wp.vec3)
     rd.specular = wp.array(r.specular.astype(np.float32), dtype=wp.vec3)
     rd.specular_weight = wp.array(r.specular_weight.astype(np.float32), dtype=wp.float32)
-    rd.plastic_row = wp.array(plastic_rows(scene)[1], dtype=wp.int32)
+    rd.plastic_row = wp.array(plastic_row, dtype=wp.int32)
     wp.launch(_slab_kernel, dim=len(r), inputs=[d.mesh, d.points, d.indices, rd.position, rd.slab])
     return rd
 
@@ -266,8 +266,9 @@ def _receiver_data(scene: Scene, d: Any) -> Any:
 def _build(scene: Scene, device: str) -> DeviceScene:
     """Upload ``scene`` to ``device``: its mesh, emitter BVH, structs and slabs."""
     with wp.ScopedDevice(device):
-        d, mesh, emitter_bvh = _scene_data(scene)
-        rd = _receiver_data(scene, d)
+        table, rows = plastic_rows(scene)
+        d, mesh, emitter_bvh = _scene_data(scene, table)
+        rd = _receiver_data(scene, d, rows)
     slab = rd.slab.numpy().astype(np.float64)
     slab.flags.writeable = False
     return DeviceScene(device, d, rd, slab, mesh, emitter_bvh)

@@ -484,7 +484,7 @@ MIN_ALPHA = 1e-4
 def _first_bad(ok: np.ndarray, values: np.ndarray, what: str, rule: str, where: object) -> None:
     if not ok.all():
         i = int(np.argmin(ok.reshape(len(ok), -1).all(axis=1)))
-        raise fail(where, f"{what} of receiver {i} is {values[i]!r}: {rule}")
+        raise fail(where, f"{what} of receiver {i} is {np.asarray(values[i]).tolist()}: {rule}")
 
 
 def _check_microfacet(rx: Receivers, where: object) -> None:
@@ -502,6 +502,11 @@ def _check_microfacet(rx: Receivers, where: object) -> None:
                    "expected a reflectance in [0, 1000]", where)
         _first_bad((rx.specular_weight >= 0) & (rx.specular_weight <= 1), rx.specular_weight, "specular_weight",
                    "expected a probability in [0, 1]", where)
+    # A roughplastic interface of relative index 1 (in float32, as the kernels hold it)
+    # reflects nothing and transmits everything: its tables have no meaning.
+    plastic = rx.material == MATERIALS["roughplastic"].code
+    _first_bad(~plastic | (rx.eta[:, 0].astype(np.float32) != np.float32(1.0)), rx.eta, "eta",
+               "a roughplastic's int_ior/ext_ior must differ from 1", where)
 
 
 def _geometry(vertices: Any, triangles: Any, where: object) -> tuple[np.ndarray, np.ndarray]:
