@@ -33,6 +33,8 @@ import warpis
 BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")  # TOML scenes
 # Mitsuba XML scenes (need the mitsuba extra; tests/test_mitsuba_scene.py and test_against_mitsuba.py)
 MITSUBA_BUNDLED = ("mitsuba-cornell-box", "mitsuba-veach-plates")
+# TOML scenes whose receivers are a camera's pixels (thousands: kept out of BUNDLED's per-scene tests)
+CAMERA_BUNDLED = ("veach-plates-camera",)
 
 # The default material and receivers of write_scene: irradiance at the origin, facing +z.
 IRRADIANCE = {"type": "irradiance"}

@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 import warpis
-from conftest import BUNDLED, MITSUBA_BUNDLED
+from conftest import BUNDLED, CAMERA_BUNDLED, MITSUBA_BUNDLED
 from conftest import one_error_line as _one_error_line
 from conftest import run_warpis, write_scene
 
@@ -31,14 +31,14 @@ def test_scenes_lists_the_bundled_scenes(cli, loaded_scenes):
     lines = result.out.strip().splitlines()
     assert lines[0].split()[0] == "scene"
     rows = {line.split()[0]: line.split() for line in lines[1:]}
-    assert sorted(rows) == sorted(BUNDLED + MITSUBA_BUNDLED)
-    scenes = loaded_scenes | {name: warpis.load_scene(name) for name in MITSUBA_BUNDLED}
+    assert sorted(rows) == sorted(BUNDLED + MITSUBA_BUNDLED + CAMERA_BUNDLED)
+    scenes = loaded_scenes | {name: warpis.load_scene(name) for name in MITSUBA_BUNDLED + CAMERA_BUNDLED}
     for name, row in rows.items():
         assert int(row[1]) == scenes[name].triangle_count
 
     result = cli("scenes", "--json")
     data = json.loads(result.out)
-    assert [row["scene"] for row in data["scenes"]] == sorted(BUNDLED + MITSUBA_BUNDLED)
+    assert [row["scene"] for row in data["scenes"]] == sorted(BUNDLED + MITSUBA_BUNDLED + CAMERA_BUNDLED)
     for row in data["scenes"]:
         assert SUMMARY_KEYS <= set(row)
         assert row["emitter_triangles"] == scenes[row["scene"]].emitter_count

@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import BUNDLED, MITSUBA_BUNDLED, floor_entry, light_entry, quad, run_warpis, write_mesh, write_scene
+from conftest import BUNDLED, CAMERA_BUNDLED, MITSUBA_BUNDLED, floor_entry, light_entry, quad, run_warpis, write_mesh, write_scene
 
 import warpis
 from warpis.errors import WarpisError
@@ -63,8 +63,8 @@ def _trimesh(path: Path) -> trimesh.Trimesh:
 
 
 def test_bundled_scene_names():
-    """bundled_scenes() lists exactly the scenes shipped in meshes/: TOML and Mitsuba XML."""
-    assert warpis.bundled_scenes() == sorted(BUNDLED + MITSUBA_BUNDLED)
+    """bundled_scenes() lists exactly the scenes shipped in meshes/: TOML (points and a camera) and Mitsuba XML."""
+    assert warpis.bundled_scenes() == sorted(BUNDLED + MITSUBA_BUNDLED + CAMERA_BUNDLED)
 
 
 def test_bundled_counts_and_totals(bundled_scene):
@@ -427,7 +427,7 @@ def _bad_scene(case: str, tmp_path: Path) -> tuple[Path, str, str]:
         path = tmp_path / "absent" / "scene.toml"
         return path, str(path), "no such scene file"
     if case == "unknown-bundled-name":
-        return Path("occluded-quadd"), "occluded-quadd", "bundled: " + ", ".join(sorted(BUNDLED + MITSUBA_BUNDLED))
+        return Path("occluded-quadd"), "occluded-quadd", "bundled: " + ", ".join(sorted(BUNDLED + MITSUBA_BUNDLED + CAMERA_BUNDLED))
     kwargs, file, problem = BAD[case]
     path = write_scene(tmp_path, **kwargs)
     return path, str(tmp_path / file), problem

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import write_scene
 
@@ -83,9 +85,10 @@ def _wait_until_stopped(proc: subprocess.Popen, timeout: float, stderr: Path) ->
 
 
 def without_seconds(rows: list[list[str]]) -> list[list[str]]:
-    """Every column but the wall-clock ``seconds`` (the header row included)."""
-    i = HEADER.index("seconds")
-    return [r[:i] + r[i + 1:] for r in rows]
+    """Every column but those measured with a clock (``seconds``, ``seconds_per_estimate``,
+    ``efficiency``), the header row included."""
+    timing = {HEADER.index(name) for name in ("seconds", "seconds_per_estimate", "efficiency")}
+    return [[x for k, x in enumerate(r) if k not in timing] for r in rows]
 
 
 def test_killed_run_resumes_to_the_same_files(tmp_path, cli):
@@ -240,3 +243,83 @@ def test_study_files_validate_and_demo_toml_is_the_demo():
         assert load_study(path).cells()
     assert [c.key for c in load_study(STUDIES / "demo.toml").cells()] == [c.key for c in demo_study().cells()]
     assert load_study(STUDIES / "demo.toml").labels == demo_study().labels
+
+
+def test_efficiency_columns_and_report_table(tmp_path, cli):
+    """results.csv carries each cell's CPU seconds per estimate (> 0, the same on every row of a
+    cell) and efficiency = 1/(variance × seconds_per_estimate) exactly as written; report.md
+    has the efficiency table, with the first estimator at 1 relative to itself."""
+    study = write_study(tmp_path / "study.toml", **tiny())
+    out = tmp_path / "out"
+    assert cli("study", study, "--out", out).status == 0
+    rows = read_csv(out / "results.csv")
+    col = {name: k for k, name in enumerate(rows[0])}
+    per_cell: dict[str, set[str]] = {}
+    for r in rows[1:]:
+        cost, variance, eff = (float(r[col[k]]) for k in ("seconds_per_estimate", "variance", "efficiency"))
+        assert 0 < cost < 1.0
+        assert eff == 1.0 / (variance * cost)
+        per_cell.setdefault(r[col["cell"]], set()).add(r[col["seconds_per_estimate"]])
+    assert all(len(costs) == 1 for costs in per_cell.values())
+    report = (out / "report.md").read_text()
+    table = report.split("## Efficiency", 1)[1].split("##", 1)[0]
+    assert "| 4 | `independent:single:light-area` | 1 |" in table
+    assert "| 16 | `jittered:single:cosine` |" in table
+
+
+def _camera_scene(directory: Path, width: int = 16, height: int = 12) -> Path:
+    """A lambert floor half shadowed by a phong blocker under a square light, seen from above."""
+    from conftest import floor_entry, light_entry, quad
+
+    v, f = quad((0.6, 0.0, 0.5), (0.3, 1.5), "up")
+    meshes = [floor_entry(half=1.5, material={"type": "lambert", "albedo": 0.5}),
+              light_entry(height=2.0, half=0.3),
+              {"path": "blocker.obj", "vertices": v, "faces": f,
+               "material": {"type": "phong", "exponent": 20.0, "albedo": 0.5}}]
+    camera = {"camera": {"position": [0.0, -0.1, 4.0], "target": [0.0, 0.0, 0.0], "fov": 45.0, "width": width,
+                         "height": height}}
+    return write_scene(directory, meshes=meshes, receivers=camera, material=None)
+
+
+def test_study_over_a_camera_scene(tmp_path, cli):
+    """A study on a camera scene draws its variance, ratio and slope maps over the image and its
+    convergence figures for representative pixels (lit, penumbra, glossy highlight) that are
+    what they say: the lit pixel gets all its unoccluded light, the penumbra pixel about half."""
+    import warpis
+    from warpis.analysis.reference import unoccluded_lambert
+
+    scene_file = _camera_scene(tmp_path / "cam")
+    keys = tiny(scenes=["cam/scene.toml"], trials=40, outputs=["convergence", "maps"],
+                estimators=["jittered:single:light-area", "jittered:balance:light-area+bsdf"])
+    del keys["receivers"]  # every pixel
+    study = write_study(tmp_path / "study.toml", **keys)
+    out = tmp_path / "out"
+    result = cli("study", study, "--out", out)
+    assert result.status == 0, result.err
+    report = (out / "report.md").read_text()
+    for stem in ("variance-map-test-scene-n4", "variance-map-test-scene-n16", "variance-ratio-test-scene",
+                 "slope-map-test-scene"):
+        assert (out / "figures" / f"{stem}.png").stat().st_size > 1000, stem
+        assert f"figures/{stem}.png" in report
+    note = next(line for line in report.splitlines() if "representative pixels" in line)
+    picked = dict(re.findall(r"(lit|penumbra|glossy highlight): receiver (\d+)", note))
+    assert set(picked) == {"lit", "penumbra", "glossy highlight"}
+    scene = warpis.load_scene(scene_file)
+    refs = {int(r[1]): float(r[8]) for r in read_csv(out / "results.csv")[1:]}
+    lit, shade = int(picked["lit"]), int(picked["penumbra"])
+    share = np.array([refs[lit], refs[shade]]) / unoccluded_lambert(scene, [lit, shade])
+    assert share[0] > 0.999 and 0.2 < share[1] < 0.8
+    assert scene.receivers.material_name(int(picked["glossy highlight"])) == "phong"
+    assert "rows: see" in report or "## Cells" in report
+
+
+def test_predictions_at_too_many_camera_pixels_is_one_line(tmp_path, cli):
+    """Predictions at every pixel of a camera scene would take hours: refused before any work."""
+    _camera_scene(tmp_path / "cam")
+    keys = tiny(scenes=["cam/scene.toml"], predictions=True)
+    del keys["receivers"]
+    study = write_study(tmp_path / "study.toml", **keys)
+    out = tmp_path / "out"
+    result = cli("study", study, "--out", out)
+    assert result.status == 2 and not out.exists()
+    assert len(result.err.strip().splitlines()) == 1 and "at most 64" in result.err

@@ -1,4 +1,4 @@
-"""The ``warpis`` command: scenes, info, reference, estimate, verify, study, demo.
+"""The ``warpis`` command: scenes, info, reference, estimate, verify, image, study, demo.
 
 Bad input (files, scenes, estimator specs, options) ends with one line on stderr,
 ``warpis: error: <file or option>: <problem>``, and exit status 2; nothing is written.
@@ -260,6 +260,60 @@ def cmd_study(args: argparse.Namespace) -> int:
     return _run_study(study, out if out is not None else default_out(study), args)
 
 
+def cmd_image(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .runs import outdir
+    from .runs.image import PREDICTION_POINTS, ImageRun, json_safe, parse_estimators, run_image, summary_lines
+    from .scenes import load_scene
+
+    estimators = parse_estimators(args.estimator)
+    for est in estimators:
+        est.check_n(args.n)
+    out = outdir.out_option(args.out)
+    scene = load_scene(args.scene, device=args.device, channel=args.channel, receivers=args.receivers_file,
+                       camera=True, width=args.width, height=args.height)
+    baseline = _baseline(args.baseline, estimators)
+    run = ImageRun(scene, estimators, args.n, args.trials, args.seed, baseline,
+                   PREDICTION_POINTS if args.prediction_points is None else args.prediction_points,
+                   threads=args.threads)
+    out = out if out is not None else Path("warpis-out") / f"image-{scene.name}"
+    command = "warpis " + " ".join(sys.argv[1:]) if sys.argv[1:] else f"warpis image {args.scene}"
+    with _progress(0, "pixel-trials") as bar:
+        bar.bar.unit_scale = True
+
+        def progress(done: int, total: int) -> None:
+            bar.bar.total = total
+            bar(done, total)
+
+        def log(line: str) -> None:
+            bar.bar.write(line, file=sys.stderr)
+
+        result = run_image(run, out, progress, log, command)
+    lines = [f"{scene.name}: {len(scene.receivers)} pixels measured of {scene.receivers.image.camera.width} × "
+             f"{scene.receivers.image.camera.height}, N={args.n}, {args.trials} trials, {result.meta['seconds']:.0f} s "
+             f"({result.computed} tile(s) computed, {result.reused} reused)"]
+    lines += summary_lines(result)
+    lines.append(f"predictions: {result.meta['prediction']}")
+    lines.append(f"wrote {out / 'index.html'}, {out / 'image.npz'} and {len(result.pictures)} picture(s)")
+    # An infinitely efficient estimator (zero variance) is JSON's null, as in image.json.
+    _emit(json_safe(result.meta), args.json, "\n".join(lines))
+    return 0
+
+
+def _baseline(text: str | None, estimators) -> int:
+    """``--baseline``: an estimator spec among ``--estimator`` (default: the first)."""
+    if text is None:
+        return 0
+    from .kernels.estimators import parse_estimator
+
+    spec = parse_estimator(text).spec
+    specs = [e.spec for e in estimators]
+    if spec not in specs:
+        raise WarpisError(f"--baseline: {text!r} is not one of the --estimator specs ({', '.join(specs)})")
+    return specs.index(spec)
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     from .runs.outdir import out_option
     from .runs.study import default_out, demo_study
@@ -457,6 +511,24 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", help="directory for verify.json, verify.md and figures")
     cluster_options(c)
     c.set_defaults(func=cmd_verify)
+
+    c = scene_command("image", "every pixel of the scene's camera a receiver: mean, variance, predicted variance and "
+                               "efficiency images per estimator, with an index.html", epilog=estimator_help())
+    c.add_argument("--estimator", required=True, action="append",
+                   help="PATTERN:COMBINER:TECH[+TECH...]; repeat for several estimators")
+    c.add_argument("--n", type=_positive, required=True, help="samples per estimate (N)")
+    c.add_argument("--trials", type=_positive, default=256, help="trials per pixel (M, default 256)")
+    c.add_argument("--seed", type=_seed, default=0, help="random seed in [0, 2^32) (default 0)")
+    c.add_argument("--baseline", help="the estimator efficiencies are relative to (default: the first --estimator)")
+    c.add_argument("--width", type=_positive, help="image width in pixels (default: the camera's)")
+    c.add_argument("--height", type=_positive, help="image height in pixels (default: the camera's)")
+    c.add_argument("--prediction-points", type=_option_type(lambda t: limits.count_text(t, "--prediction-points",
+                                                                                        minimum=0)),
+                   default=None, help="dense points per pixel and technique for the exact predicted variance "
+                                      "(default 4096; 0: no predictions)")
+    c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores; results do not depend on it)")
+    c.add_argument("--out", help="output directory (default ./warpis-out/image-<scene>/); rerunning resumes")
+    c.set_defaults(func=cmd_image)
 
     c = sub.add_parser("study", help="run a study file (scenes × estimators × N) into results, figures and a report; "
                                      "resumable", description="run a study file (scenes × estimators × N) into "

@@ -142,7 +142,8 @@ def slope_convergence_plot(series: Sequence[dict], title: str, out: Path, stem: 
     return _save(fig, out, stem)
 
 
-def variance_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str) -> list[Path]:
+def variance_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str,
+                      origin: str = "lower") -> list[Path]:
     """A panel per estimator of the variance over a receiver grid, on one shared log colour scale.
 
     ``panels``: (label, (rows, cols) array) with NaN where a receiver was not measured;
@@ -154,10 +155,11 @@ def variance_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out:
     if positive.size == 0:
         return []
     norm = LogNorm(vmin=float(positive.min()), vmax=float(max(positive.max(), positive.min() * 1.0001)))
-    return _map_panels(panels, title, "viridis", norm, "variance (grey: zero or not measured)", out, stem)
+    return _map_panels(panels, title, "viridis", norm, "variance (grey: zero or not measured)", out, stem, origin)
 
 
-def ratio_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str) -> list[Path]:
+def ratio_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str,
+                   origin: str = "lower") -> list[Path]:
     """Panels of a variance ratio over a receiver grid, log colour scale centred on 1.
 
     ``panels``: (label, (rows, cols) array of ratios); NaN or non-positive entries are grey.
@@ -170,21 +172,37 @@ def ratio_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Pa
     span = float(np.exp(np.max(np.abs(np.log(finite)))))
     span = max(span, 1.01)
     norm = LogNorm(vmin=1 / span, vmax=span)
-    return _map_panels(panels, title, "RdBu_r", norm, "variance ratio (grey: undefined)", out, stem)
+    return _map_panels(panels, title, "RdBu_r", norm, "variance ratio (grey: undefined)", out, stem, origin)
+
+
+def slope_map_plot(panels: Sequence[tuple[str, np.ndarray]], title: str, out: Path, stem: str,
+                   origin: str = "upper") -> list[Path]:
+    """Panels of the fitted convergence slope per receiver (a camera's pixels), on one
+    linear scale from −2.5 to 0 (−1: independent sampling's rate; −2: jittered on a
+    smooth integrand); grey where there is no slope (zero variance, or not measured)."""
+    from matplotlib.colors import Normalize
+
+    if not any(np.isfinite(a).any() for _, a in panels):
+        return []
+    return _map_panels(panels, title, "viridis_r", Normalize(-2.5, 0.0), "slope of log variance against log N "
+                       "(grey: none)", out, stem, origin, positive_only=False)
 
 
 def _map_panels(panels: Sequence[tuple[str, np.ndarray]], title: str, cmap_name: str, norm, label: str, out: Path,
-                stem: str) -> list[Path]:
-    """One image per panel on a shared colour scale; masked (grey) where not positive."""
+                stem: str, origin: str = "lower", positive_only: bool = True) -> list[Path]:
+    """One image per panel on a shared colour scale; masked (grey) where not finite (or,
+    with ``positive_only``, not positive).  ``origin``: "lower" for receiver grids (row 0
+    at the bottom), "upper" for camera images (row 0 at the top)."""
     cols = min(4, len(panels))
     nrows = (len(panels) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 3.0 * nrows), squeeze=False)
-    cmap = plt.get_cmap(cmap_name).copy()
-    cmap.set_bad("0.75")
+    cmap = plt.get_cmap(cmap_name).with_extremes(bad="0.75")
     image = None
     for ax, (name, grid) in zip(axes.flat, panels):
-        shown = np.ma.masked_where(~(np.isfinite(grid) & (grid > 0)), grid)
-        image = ax.imshow(shown, origin="lower", cmap=cmap, norm=norm, interpolation="nearest", aspect="auto")
+        bad = ~(np.isfinite(grid) & (grid > 0)) if positive_only else ~np.isfinite(grid)
+        shown = np.ma.masked_where(bad, grid)
+        image = ax.imshow(shown, origin=origin, cmap=cmap, norm=norm, interpolation="nearest",
+                          aspect="equal" if origin == "upper" else "auto")
         ax.set_title(name, fontsize=8)
         ax.set_xticks([])
         ax.set_yticks([])

@@ -211,6 +211,12 @@ def _closed_form(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return values * albedo, exact & diffuse, np.abs(values * albedo)
 
 
+def unoccluded_lambert(scene: Scene, receivers: Sequence[int]) -> np.ndarray:
+    """(R,) each receiver's Lambert value with every occluder removed (× albedo/π for
+    lambert and phong): the scale of its value, and the light it would get unshadowed."""
+    return _closed_form(scene, np.asarray(receivers, dtype=np.int64))[2]
+
+
 class _Ticker:
     """Adds launches' samples to a running total for a progress callback."""
 

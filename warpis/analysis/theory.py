@@ -15,6 +15,8 @@ f(T_k(u)) and the pdf of every technique of the set at T_k(u).  From those:
   Var = c² Σ_k Σ_b Var(block sum) — a sum of within-block variances, never a difference of
   two large numbers.  The mixture's random technique choice enters through the moments
   given u: E[ψ|u] = mean_k ψ_k(u), E[ψ²|u] = mean_k ψ_k(u)².
+* **Exact variances of many receivers** (``exact_variances``, a variance image): the
+  same at a fixed density, every receiver of a launch at the same points.
 * **Reference moments** (``moments``): I, I_k, E_ḡ[h²], E_{g_k}[(f/g_k)²], ∫ f g_k,
   ∫ f² g_k, ∫ f², ∫ 1/g_k, and the stratum integrals J_ik.
 * **The seed's equations** as printed and exactly (``predictions``, one ``Form`` each in
@@ -23,31 +25,33 @@ f(T_k(u)) and the pdf of every technique of the set at T_k(u).  From those:
 
 Accuracy: each quantity is computed from R independent replicas of the jittered points.
 Block variances use E[Q] − E[P]² with E[P]² estimated from *pairs of different replicas*,
-which is unbiased; the standard error comes from a jackknife over replicas.  The density
-is raised (×4 points per block) until the relative error is below ``REL_TOL`` or the point
-budget is spent, which the result then says.
+which is unbiased; the standard error comes from a jackknife over replicas.  For one
+receiver (``exact_variance``) the density is raised (×4 points per block) until the
+relative error is below ``REL_TOL`` or the point budget is spent, which the result then
+says; for many (``exact_variances``) it is the caller's, and the stderr says what it gave.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import warp as wp
 
+from .. import limits
 from ..errors import WarpisError
-from ..kernels.device import ReceiverData, SceneData, upload
+from ..kernels.device import DeviceScene, ReceiverData, SceneData, upload
 from ..kernels.engine import default_threads
 from ..kernels.estimators import COMBINERS, Estimator, parse_estimator
 from ..kernels.integrand import integrand, shading_point
 from ..kernels.patterns import PATTERNS
-from ..kernels.techniques import (TECHNIQUES, LightTable, dispatch, light_table, sample_technique, sampler,
-                                  technique_pdf, user_techniques)
+from ..kernels.techniques import (TECHNIQUES, LightTable, dispatch, light_table, sample_direction, technique_pdf,
+                                  user_techniques)
 from ..scenes import Scene
 from ..vocabulary import Blocks
 
@@ -61,31 +65,40 @@ SEED = 0x7E0
 # --------------------------------------------------------------------------- kernel
 
 
-def _make_evaluate_kernel(sample_technique: Any, technique_pdf: Any, module: Any) -> Any:
+def _make_evaluate_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -> Any:
     @wp.kernel(module=module)
-    def evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, r: wp.int32,
-                         techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2),
-                         f_out: wp.array(dtype=wp.float64), pdf_out: wp.array2d(dtype=wp.float64)):
-        """f and every technique's pdf at the direction technique k maps u[i] to."""
-        i = wp.tid()
-        sp = shading_point(scene, recv, r)
-        w, pdf = sample_technique(techs[k], scene, table, sp, u[i])
+    def evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
+                        techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2),
+                        f_out: wp.array2d(dtype=wp.float64), pdf_out: wp.array3d(dtype=wp.float64)):
+        """f and every technique's pdf at the direction technique k maps u[j] to, seen
+        from receiver receivers[i].
+
+        f is found first and the pdfs only where it is > 0: ψ is 0 wherever f is, and
+        a light pdf (a traversal of the emitters) costs more than the shadow ray.  A
+        sample whose own pdf is 0 (a failed sample) has f = 0, as in the estimators.
+        """
+        i, j = wp.tid()
+        sp = shading_point(scene, recv, receivers[i])
+        w = sample_direction(techs[k], scene, table, sp, u[j])
         f = float(0.0)
-        if pdf > 0.0:
+        if wp.length_sq(w) > 0.0:
             f = integrand(scene, sp, w)
-        for j in range(techs.shape[0]):
-            g = pdf
-            if j != k:
-                g = float(0.0)
-                if pdf > 0.0:
-                    g = technique_pdf(techs[j], scene, table, sp, w)
-            pdf_out[i, j] = wp.float64(g)
-        f_out[i] = wp.float64(f)
+        own = float(0.0)
+        if f > 0.0:
+            own = technique_pdf(techs[k], scene, table, sp, w)
+        if own <= 0.0:
+            f = float(0.0)
+        for t in range(techs.shape[0]):
+            g = own
+            if t != k and own > 0.0:
+                g = technique_pdf(techs[t], scene, table, sp, w)
+            pdf_out[i, j, t] = wp.float64(g)
+        f_out[i, j] = wp.float64(f)
 
     return evaluate_kernel
 
 
-_evaluate_kernel = _make_evaluate_kernel(sample_technique, technique_pdf, None)
+_evaluate_kernel = _make_evaluate_kernel(sample_direction, technique_pdf, None)
 
 
 @functools.lru_cache(maxsize=None)
@@ -94,42 +107,76 @@ def _evaluate_kernel_for(user: tuple) -> Any:
     if not user:
         return _evaluate_kernel
 
-    return _make_evaluate_kernel(sampler(user), dispatch(user)[1], "unique")
+    return _make_evaluate_kernel(*dispatch(user), "unique")
+
+
+@dataclass(frozen=True)
+class _Evaluator:
+    """The evaluate kernel bound to one scene's upload and one technique set."""
+
+    up: DeviceScene  # held until the launches are done: the structs know their mesh by id only
+    table: Any  # LightTable
+    codes: Any  # wp.array of the techniques' codes
+    kernel: Any
+    techniques: int
+
+    @classmethod
+    def of(cls, scene: Scene, techniques: tuple[str, ...]) -> _Evaluator:
+        up = upload(scene)
+        codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32,
+                         device=up.device)
+        return cls(up, light_table(scene), codes, _evaluate_kernel_for(user_techniques()), len(techniques))
+
+    @property
+    def cpu(self) -> bool:
+        return wp.get_device(self.up.device).is_cpu
+
+    def load(self) -> None:
+        """Compile the kernel once, before threads race to."""
+        wp.load_module(self.kernel.module, device=self.up.device)
+
+    def __call__(self, rows: np.ndarray, k: int, u: np.ndarray, pieces: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """f (R, P) and the pdfs (R, P, N_g; 0 where f is) at T_k(u) seen from receivers
+        ``rows`` (R,), for points u (P, 2).  The points split into ``pieces`` launches on
+        as many threads (a CPU launch runs on one core and releases the GIL)."""
+        dev = self.up.device
+        receivers = wp.array(np.asarray(rows, np.int32), dtype=wp.int32, device=dev)
+        f_all = np.empty((len(rows), len(u)))
+        pdf_all = np.empty((len(rows), len(u), self.techniques))
+
+        def run(lo: int, hi: int) -> None:
+            uu = wp.array(np.ascontiguousarray(u[lo:hi], np.float32), dtype=wp.vec2, device=dev)
+            f = wp.empty((len(rows), hi - lo), dtype=wp.float64, device=dev)
+            pdf = wp.empty((len(rows), hi - lo, self.techniques), dtype=wp.float64, device=dev)
+            wp.launch(self.kernel, dim=(len(rows), hi - lo), device=dev,
+                      inputs=[self.up.data, self.up.receiver_data, self.table, receivers, self.codes, k, uu, f, pdf])
+            f_all[:, lo:hi] = f.numpy()
+            pdf_all[:, lo:hi] = pdf.numpy()
+
+        if pieces <= 1:
+            run(0, len(u))
+            return f_all, pdf_all
+        bounds = [int(b) for b in np.linspace(0, len(u), pieces + 1)]
+        with ThreadPoolExecutor(max_workers=pieces) as pool:
+            for fut in [pool.submit(run, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]:
+                fut.result()
+        return f_all, pdf_all
 
 
 def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray]:
     """f (P,) and the pdfs (P, N_g) of all ``techniques`` at T_k(u) for points u (P, 2).
 
-    On the CPU the points are split over the engine's worker threads (one launch each).
+    The pdfs are found only where f > 0 and are 0 elsewhere (every weighted value is 0
+    there).  On the CPU the points are split over the engine's worker threads (one launch
+    each).
     """
-    up = upload(scene)  # held until the launches are done: the struct knows its mesh by id only
-    dev = up.device
-    codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32, device=dev)
-    table = light_table(scene)
-    kernel = _evaluate_kernel_for(user_techniques())
-    f_all = np.empty(len(u))
-    pdf_all = np.empty((len(u), len(techniques)))
-
-    def run(lo: int, hi: int) -> None:
-        uu = wp.array(np.ascontiguousarray(u[lo:hi], np.float32), dtype=wp.vec2, device=dev)
-        f = wp.zeros(hi - lo, dtype=wp.float64, device=dev)
-        pdf = wp.zeros((hi - lo, len(techniques)), dtype=wp.float64, device=dev)
-        wp.launch(kernel, dim=hi - lo, device=dev,
-                  inputs=[up.data, up.receiver_data, table, receiver, codes, k, uu, f, pdf])
-        f_all[lo:hi] = f.numpy()
-        pdf_all[lo:hi] = pdf.numpy()
-
-    workers = default_threads() if wp.get_device(dev).is_cpu and len(u) >= 1 << 14 else 1
-    bounds = [int(b) for b in np.linspace(0, len(u), workers + 1)]
-    if workers == 1:
-        run(0, len(u))
-    else:
-        wp.load_module(kernel.module, device=dev)
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            for fut in [pool.submit(run, lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]:
-                fut.result()
-    return f_all, pdf_all
+    ev = _Evaluator.of(scene, techniques)
+    pieces = default_threads() if ev.cpu and len(u) >= 1 << 14 else 1
+    if pieces > 1:
+        ev.load()
+    f, pdf = ev(np.array([receiver], np.int32), k, u, pieces)
+    return f[0], pdf[0]
 
 
 def weighted_values(combiner: str, k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
@@ -185,26 +232,51 @@ class Estimate:
 
 
 def _unbiased_block_variance(q: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Σ over blocks of E[Q] − E[P]², from per-replica block means q, p of shape (R, B).
+    """Σ over blocks of E[Q] − E[P]², from per-replica block means q, p of shape (..., B, r).
 
     E[P]² is estimated by the mean over ordered pairs of *different* replicas of
-    p_a · p_b, which is unbiased because replicas are independent.
+    p_a · p_b, which is unbiased because replicas are independent.  Every sum runs over
+    the last axis, so a receiver's value does not depend on the others in the array.
     """
-    r = q.shape[0]
-    sp = p.sum(axis=0)
-    pairs = (sp * sp - (p * p).sum(axis=0)) / (r * (r - 1))
-    return (q.mean(axis=0) - pairs).sum()
+    r = q.shape[-1]
+    sp = p.sum(axis=-1)
+    pairs = (sp * sp - (p * p).sum(axis=-1)) / (r * (r - 1))
+    return (q.mean(axis=-1) - pairs).sum(axis=-1)
 
 
-def _jackknife(q: np.ndarray, p: np.ndarray) -> tuple[float, float]:
-    r = q.shape[0]
+def _jackknife(q: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The unbiased block variance and its jackknife stderr over replicas, for per-replica
+    block means q, p of shape (R, B, r): each (R,)."""
+    r = q.shape[-1]
     full = _unbiased_block_variance(q, p)
-    leave = np.array([_unbiased_block_variance(np.delete(q, a, 0), np.delete(p, a, 0)) for a in range(r)])
-    se = math.sqrt(max((r - 1) / r * ((leave - leave.mean()) ** 2).sum(), 0.0))
-    return float(full), se
+    leave = np.stack([_unbiased_block_variance(np.delete(q, a, -1), np.delete(p, a, -1)) for a in range(r)], -1)
+    spread = ((leave - leave.mean(axis=-1, keepdims=True)) ** 2).sum(axis=-1)
+    return full, np.sqrt(np.maximum((r - 1) / r * spread, 0.0))
 
 
 # --------------------------------------------------------------------------- exact variance
+
+
+# Float64 working memory of one chunk of receivers (kernel outputs and the numpy
+# reductions): receivers are chunked so that a chunk stays about this size (one receiver
+# at least, whatever its points need).
+CHUNK_BYTES = 128 << 20
+
+
+@dataclass(frozen=True, eq=False)
+class Variances:
+    """Exact variances of one estimate at many receivers, at a fixed density."""
+
+    value: np.ndarray  # (R,) exact variance of one estimate at each receiver
+    stderr: np.ndarray  # (R,) jackknife standard error over replicas
+    points: int  # dense points evaluated per receiver (all techniques, all replicas)
+
+    @property
+    def rel_error(self) -> np.ndarray:
+        """stderr/|value| (0 where both are 0, inf where only the value is)."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.value == 0, np.where(self.stderr == 0, 0.0, math.inf),
+                            np.abs(self.stderr / self.value))
 
 
 def exact_form_problem(est: Estimator) -> str | None:
@@ -214,6 +286,63 @@ def exact_form_problem(est: Estimator) -> str | None:
     if est.combiner_entry.weights is None:
         return f"combiner {est.combiner!r} has no numpy weights, so no exact variance"
     return None
+
+
+def _exact_estimator(estimator: str | Estimator, n: int) -> tuple[Estimator, Blocks, float]:
+    """The estimator, the blocks of each technique's m samples and the factor c² ·
+    multiplicity of Var = c² · multiplicity · Σ_k Σ_b Var(block sum); a one-line
+    WarpisError for an N it cannot take or where it has no exact form."""
+    est = parse_estimator(estimator)
+    est.check_n(n)
+    problem = exact_form_problem(est)
+    if problem:
+        raise WarpisError(f"estimator {est.spec!r}: {problem}")
+    m = est.per_technique(n)
+    blocks = est.pattern_entry.blocks(m)
+    c = est.combiner_entry.scale(m, est.technique_count)
+    return est, blocks, c * c * blocks.multiplicity
+
+
+def exact_variances(scene: Scene, receivers: Sequence[int], estimator: str | Estimator, n: int,
+                    points: int = 1 << 12, seed: int = SEED, threads: int | None = None,
+                    progress: Callable[[int, int], None] | None = None) -> Variances:
+    """The exact variance of one estimate (N = ``n``) at each of ``receivers``, at a fixed density.
+
+    The mathematics of :func:`exact_variance` for many receivers at once (a variance
+    image), with no refinement: ``points`` is the budget of dense points per technique
+    and receiver over all ``REPLICAS`` replicas.  Each block's cell gets sub × sub jittered
+    strata, sub the largest with blocks · sub² · REPLICAS ≤ ``points`` (at least 1), so
+    fewer points than asked are used where the budget is not of that form, and more
+    (blocks · REPLICAS) where it is below one point per block and replica; paired
+    patterns also evaluate the reflected points.  The stderr says how good the result
+    is: it falls as 1/√points on smooth integrands (faster still where stratification
+    helps), so ×4 points roughly halves it.
+
+    Every receiver sees the same points (drawn from ``seed`` and the block layout), so a
+    receiver's value does not depend on which others are asked for, nor on ``threads``.
+    Receivers are taken in equal chunks of at most about ``CHUNK_BYTES`` of float64
+    working memory each; on the CPU the chunks run on ``threads`` worker threads (default
+    the engine's), one launch per chunk and technique.
+    ``progress(receivers_done, receivers_total)`` is called after each chunk, in the
+    calling thread.
+
+    Raises a one-line WarpisError where the estimator has no exact form
+    (``exact_form_problem``), cannot take N = ``n``, or ``points``, ``receivers``,
+    ``seed`` or ``threads`` are not valid.
+    """
+    est, blocks, scale = _exact_estimator(estimator, n)
+    budget = limits.count(points, "exact_variances: points")
+    rows = limits.receiver_indices(receivers, "exact_variances: receivers", len(scene.receivers))
+    seed = limits.seed(seed, "exact_variances: seed")
+    workers = default_threads() if threads is None else limits.count(threads, "exact_variances: threads")
+    sub = max(1, math.isqrt(budget // (blocks.count * REPLICAS)))
+    value, stderr, used = _block_variances(scene, rows, est, blocks, sub, seed, workers, progress)
+    return Variances(_frozen(scale * value), _frozen(scale * stderr), used)
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
 
 
 def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: int, rel_tol: float = REL_TOL,
@@ -226,20 +355,12 @@ def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: i
     same for every N.  A one-line
     WarpisError where the estimator has no exact form (``exact_form_problem``).
     """
-    est = parse_estimator(estimator)
-    est.check_n(n)
-    problem = exact_form_problem(est)
-    if problem:
-        raise WarpisError(f"estimator {est.spec!r}: {problem}")
-    m = est.per_technique(n)
-    blocks = est.pattern_entry.blocks(m)
-    c = est.combiner_entry.scale(m, est.technique_count)
+    est, blocks, scale = _exact_estimator(estimator, n)
     cache = upload(scene).cached("block_variance", dict)  # kept per content and device
     key = (receiver, est.pattern, est.combiner, est.techniques, blocks.count, blocks.cells, rel_tol, seed, max_points)
     if key not in cache:
         cache[key] = block_variance(scene, receiver, est, blocks, rel_tol, seed, max_points)
     v = cache[key]
-    scale = c * c * blocks.multiplicity
     return Estimate(scale * v.value, scale * v.stderr, v.points)
 
 
@@ -251,61 +372,141 @@ def block_variance(scene: Scene, receiver: int, est: Estimator, blocks: Blocks, 
     bright light must be seen by every replica for the jackknife error to mean anything)
     and rises ×4 until the jackknife relative error is ≤ ``rel_tol`` or the next step
     would pass ``max_points`` per technique; the Estimate carries the error reached.
+    Each density is the fixed-density computation of :func:`exact_variances` at one
+    receiver, with its own points.
     """
     sub = 2
     while blocks.count * sub * sub * REPLICAS < MIN_POINTS:
         sub *= 2
-    rng = np.random.default_rng([seed, receiver, blocks.count, blocks.cells[0]])
+    rows = np.array([receiver], np.int32)
     while True:
-        total, var, points = 0.0, 0.0, 0
-        for q, p, used in _block_moments(scene, receiver, est, blocks, sub, rng):
-            v, se = _jackknife(q, p)
-            total += v
-            var += se * se
-            points += used
-        result = Estimate(total, math.sqrt(var), points)
+        value, stderr, points = _block_variances(scene, rows, est, blocks, sub, seed, default_threads(), None)
+        result = Estimate(float(value[0]), float(stderr[0]), points)
         if result.rel_error <= rel_tol or points * 4 > max_points * est.technique_count:
             return result
         sub *= 2
 
 
-def _block_moments(scene: Scene, receiver: int, est: Estimator, blocks: Blocks, sub: int,
-                   rng: np.random.Generator):
-    """Per technique stream: per-replica block means of Q = E[X²|u] and P = E[X|u], shifted.
+def _block_variances(scene: Scene, rows: np.ndarray, est: Estimator, blocks: Blocks, sub: int, seed: int,
+                     workers: int, progress: Callable[[int, int], None] | None
+                     ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Σ over technique streams and listed blocks of Var(block sum of ψ) at each receiver
+    of ``rows`` and its jackknife stderr (each (R,)), from ``REPLICAS`` replicas of sub ×
+    sub jittered strata per block; and the dense points evaluated per receiver.
 
-    Values are shifted per block by the value at the block's centre (a constant, so the
-    variance is unchanged) so that within-block variances are not lost to rounding.
+    The points depend on the seed and the block layout only (every receiver of every
+    chunk sees the same ones) and every reduction runs along one receiver's own values,
+    so a receiver's values are the same whatever else is asked for, however the
+    receivers are chunked and whatever ``workers``.
     """
-    techs = est.techniques
-    u = _points(blocks, sub, REPLICAS, rng)
-    shape = u.shape[:3]
+    u = _points(blocks, sub, REPLICAS, np.random.default_rng([seed, blocks.count, *blocks.cells, sub]))
+    ev = _Evaluator.of(scene, est.techniques)
+    value, var = np.zeros(len(rows)), np.zeros(len(rows))
+
+    def chunk(lo: int, hi: int, pieces: int) -> None:
+        for q, p in _block_moments(ev, rows[lo:hi], est, blocks, u, pieces):
+            v, se = _jackknife(q, p)
+            value[lo:hi] += v
+            var[lo:hi] += se * se
+
+    _run_chunks(ev, len(rows), _chunk_rows(est, blocks, u), workers, chunk, progress)
+    points = u.shape[0] * u.shape[1] * u.shape[2] * (2 if blocks.paired else 1) * est.technique_count
+    return value, np.sqrt(var), points
+
+
+def _chunk_rows(est: Estimator, blocks: Blocks, u: np.ndarray) -> int:
+    """The most receivers per chunk: the float64 arrays of a chunk (kernel outputs and their copies,
+    ψ of each technique of a stream, the shifted values, their moments and numpy's
+    temporaries) stay within ``CHUNK_BYTES``."""
+    dense = u.shape[0] * u.shape[1] * u.shape[2] * (2 if blocks.paired else 1)
+    stream = est.technique_count if est.combiner_entry.random_pick else 1
+    per_row = 8 * (blocks.count + dense) * (2 * (est.technique_count + 1) + 2 * stream + 6)
+    return max(1, CHUNK_BYTES // per_row)
+
+
+def _run_chunks(ev: _Evaluator, count: int, most: int, workers: int, chunk: Callable[[int, int, int], None],
+                progress: Callable[[int, int], None] | None) -> None:
+    """``chunk(lo, hi, pieces)`` for equal chunks of at most ``most`` of ``count`` receivers.
+
+    On the CPU the chunks run on a pool of up to ``workers`` threads, as many chunks as
+    whole rounds of the pool need (so no thread waits on a long last chunk), and a chunk
+    splits its launches into ``pieces`` so that fewer receivers than workers (one, say)
+    still use every core; the calling thread waits in the pool, where Ctrl-C raises at
+    once, and after an exception no further chunk starts.  ``progress`` runs in the
+    calling thread, in completion order.
+    """
+    chunks = -(-count // most)
+    if ev.cpu:
+        chunks = min(count, -(-chunks // workers) * workers)
+    size = -(-count // chunks)
+    bounds = [(lo, min(lo + size, count)) for lo in range(0, count, size)]
+    done = 0
+
+    def record(lo: int, hi: int) -> None:
+        nonlocal done
+        done += hi - lo
+        if progress is not None:
+            progress(done, count)
+
+    if not ev.cpu:  # GPU launches are asynchronous: one thread feeds them
+        for lo, hi in bounds:
+            chunk(lo, hi, 1)
+            record(lo, hi)
+        return
+    ev.load()
+    pieces = max(1, workers // len(bounds))
+    pool = ThreadPoolExecutor(max_workers=min(workers, len(bounds)))
+    try:
+        running = {pool.submit(chunk, lo, hi, pieces): (lo, hi) for lo, hi in bounds}
+        for fut in as_completed(running):
+            fut.result()
+            record(*running[fut])
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _block_moments(ev: _Evaluator, rows: np.ndarray, est: Estimator, blocks: Blocks, u: np.ndarray,
+                   pieces: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Per technique stream: per-replica block means of Q = E[X²|u] and P = E[X|u],
+    shifted, at each receiver of ``rows``: each (R, B, replicas).
+
+    Values are shifted per receiver and block by the value at the block's centre (a
+    constant, so the variance is unchanged) so that within-block variances are not lost
+    to rounding.
+    """
+    n_g, count = est.technique_count, blocks.count
     flat = u.reshape(-1, 2)
-    centres = _centres(blocks)
+    halves = [flat, _reflect(flat)] if blocks.paired else [flat]
+    at = np.concatenate([_centres(blocks), *halves])  # one launch per technique for everything
+    dense_shape = (len(rows), len(halves), *u.shape[:3])  # (R, halves, replicas, B, sub²)
     # A combiner that picks the technique per sample has one stream; its moments given u
     # average over the techniques.  Otherwise each technique is its own stream.
-    streams = [None] if est.combiner_entry.random_pick else range(len(techs))
-    for k in streams:
-        ks = range(len(techs)) if k is None else [k]
-
-        def psi(points: np.ndarray) -> np.ndarray:
-            """(P, len(ks)) weighted values of each sampling technique in this stream."""
-            cols = []
-            for kk in ks:
-                f, pdf = evaluate(scene, receiver, techs, kk, points)
-                cols.append(weighted_values(est.combiner, kk, f, pdf))
-            return np.stack(cols, axis=-1)
-
-        shift = psi(centres).mean(axis=-1)  # (B,)
-        a = psi(flat).reshape(*shape, len(ks)) - shift[None, :, None, None]
+    streams = [tuple(range(n_g))] if est.combiner_entry.random_pick else [(k,) for k in range(n_g)]
+    for ks in streams:
+        psi = [_psi(ev, rows, est.combiner, k, at, pieces) for k in ks]
+        shift = (sum(x[:, :count] for x in psi) / len(ks))[:, None, None, :, None]
+        shifted = [x[:, count:].reshape(dense_shape) - shift for x in psi]
+        del psi
+        mean = sum(shifted) / len(ks)  # E[ψ|u] and E[ψ²|u] over the stream's techniques
+        square = sum(x * x for x in shifted) / len(ks)
+        del shifted
         if blocks.paired:
-            b = psi(_reflect(flat)).reshape(*shape, len(ks)) - shift[None, :, None, None]
-            pa, pb = a.mean(-1), b.mean(-1)
-            p = pa + pb
-            q = (a * a).mean(-1) + (b * b).mean(-1) + 2 * pa * pb
+            p = mean[:, 0] + mean[:, 1]
+            q = square[:, 0] + square[:, 1] + 2 * mean[:, 0] * mean[:, 1]
         else:
-            p = a.mean(-1)
-            q = (a * a).mean(-1)
-        yield q.mean(axis=2), p.mean(axis=2), flat.shape[0] * (2 if blocks.paired else 1) * len(ks)
+            p, q = mean[:, 0], square[:, 0]
+        yield _per_block(q), _per_block(p)
+
+
+def _psi(ev: _Evaluator, rows: np.ndarray, combiner: str, k: int, at: np.ndarray, pieces: int) -> np.ndarray:
+    """(R, P) weighted values ψ_k at T_k(at) seen from each receiver of ``rows``."""
+    f, pdf = ev(rows, k, at, pieces)
+    return weighted_values(combiner, k, f.reshape(-1), pdf.reshape(-1, ev.techniques)).reshape(f.shape)
+
+
+def _per_block(x: np.ndarray) -> np.ndarray:
+    """(R, replicas, B, sub²) values → (R, B, replicas) block means, replicas last for the jackknife."""
+    return np.ascontiguousarray(x.mean(axis=-1).transpose(0, 2, 1))
 
 
 # --------------------------------------------------------------------------- moments

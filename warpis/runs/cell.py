@@ -144,10 +144,18 @@ class Row:
     reasons: dict[str, str] = field(default_factory=dict)
     z: dict[str, float | None] = field(default_factory=dict)  # equations only
     inside: dict[str, bool] = field(default_factory=dict)
+    # CPU seconds per estimate (process time of the trials ÷ receivers × trials): the cost in
+    # efficiency = 1/(variance × cost).  None where it was not measured.
+    seconds_per_estimate: float | None = None
     # Biased IS only: the seed's eq. 18 (the mean is ∫ f g, not F) and the bias.
     mean_predictions: dict[str, Estimate] = field(default_factory=dict)
     mean_inside: dict[str, bool] = field(default_factory=dict)
     bias: float | None = None
+
+    @property
+    def efficiency(self) -> float | None:
+        """1/(variance × seconds per estimate): inf at zero variance, None when the cost is unknown."""
+        return efficiency(self.variance, self.seconds_per_estimate)
 
     def as_dict(self) -> dict[str, Any]:
         """The plain row that summaries and figures read (study.typed_row gives the same
@@ -158,8 +166,17 @@ class Row:
                 "variance": self.variance, "variance_stderr": self.variance_stderr,
                 "variance_lo": self.variance_lo, "variance_hi": self.variance_hi,
                 "variance_ci": [self.variance_lo, self.variance_hi],
+                "seconds_per_estimate": self.seconds_per_estimate, "efficiency": self.efficiency,
                 "predictions": {k: _finite(e.value) for k, e in self.predictions.items()},
                 "z": dict(self.z), "inside": dict(self.inside)}
+
+
+def efficiency(variance: float | None, seconds_per_estimate: float | None) -> float | None:
+    """Monte Carlo efficiency 1/(variance × cost): the inverse of the time to reach unit
+    variance; inf at zero variance, None when either is unknown."""
+    if variance is None or seconds_per_estimate is None or not seconds_per_estimate > 0:
+        return None
+    return math.inf if variance == 0 else 1.0 / (variance * seconds_per_estimate)
 
 
 @dataclass
@@ -182,23 +199,26 @@ def measure_cell(scene: Scene, receivers: Sequence[int], estimator: Estimator, n
     check_trials(trials, "trials")
     start = time.perf_counter()
     rx = [int(r) for r in receivers]
+    cpu = time.process_time()  # every thread's CPU time: the trials' cost whatever the thread count
     stats = run_moments(scene, estimator, n, trials, seed=seed, receivers=rx, threads=threads).interval(LEVEL)
+    cost = (time.process_time() - cpu) / (len(rx) * trials)
     refs = cache.reference(scene, rx)
     mom = {r: cache.moments_of(scene, r, estimator.techniques) for r in rx} if predict else None
-    rows = score_cell(scene, rx, estimator, n, trials, seed, stats, refs, mom)
+    rows = score_cell(scene, rx, estimator, n, trials, seed, stats, refs, mom, cost)
     return MeasuredCell(rows, time.perf_counter() - start)
 
 
 def score_cell(scene: Scene, receivers: Sequence[int], estimator: Estimator, n: int, trials: int, seed: int,
                stats: VarianceEstimate, refs: Mapping[int, Reference],
-               moments: Mapping[int, Moments] | None) -> list[Row]:
+               moments: Mapping[int, Moments] | None, seconds_per_estimate: float | None = None) -> list[Row]:
     """The rows of a measured cell: its trial statistics (row i for ``receivers[i]``), each
-    receiver's reference and, given its moments, every prediction with its z and verdict."""
+    receiver's reference and, given its moments, every prediction with its z and verdict;
+    ``seconds_per_estimate`` is the cell's measured cost, the same for every row."""
     rows = []
     for i, r in enumerate(int(r) for r in receivers):
         row = Row(scene.name, r, estimator.spec, n, trials, seed, float(stats.mean[i]), float(stats.mean_stderr[i]),
                   refs[r].value, refs[r].stderr, float(stats.variance[i]), float(stats.variance_stderr[i]),
-                  float(stats.lo[i]), float(stats.hi[i]))
+                  float(stats.lo[i]), float(stats.hi[i]), seconds_per_estimate=seconds_per_estimate)
         if moments is not None:
             _predict(row, scene, estimator, moments[r])
         rows.append(row)

@@ -45,6 +45,7 @@ from ..analysis.stats import fit_slope
 from ..analysis.theory import BOUNDS, missing_forms
 from ..errors import WarpisError
 from ..kernels.estimators import Estimator, parse_estimator
+from ..kernels.integrand import MATERIALS
 from ..scenes import Scene, load_scene, read_toml, resolve_scene_path
 from ..vocabulary import expected_slope as registry_slope
 from . import outdir
@@ -62,12 +63,17 @@ BOUND_FORMS = BOUNDS
 Z_FORMS = tuple(f for f in FORMS if f not in BOUND_FORMS)
 HEADER = (["scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mean_stderr", "reference",
            "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi"]
-          + [f"pred_{f}" for f in FORMS] + [f"z_{f}" for f in Z_FORMS] + ["seconds", "warpis_version", "cell"])
+          + [f"pred_{f}" for f in FORMS] + [f"z_{f}" for f in Z_FORMS]
+          + ["seconds_per_estimate", "efficiency", "seconds", "warpis_version", "cell"])
 # Bytes per trial estimate while a cell runs: the float64 result and about three
 # float64 temporaries of the same size in stats.variance_interval.
 TRIAL_BYTES = 32
 # Convergence figures per scene: the first receivers of the study's list for that scene.
 MAX_CONVERGENCE_RECEIVERS = 8
+# Rows beyond which report.md lists no cells (results.csv holds them).
+MAX_REPORT_ROWS = 2000
+# Most camera pixels a study predicts at (each receiver's forms cost seconds).
+MAX_PREDICTED_PIXELS = 64
 
 # The built-in study of ``warpis demo`` (scripts/studies/demo.toml is the same study as a file).
 DEMO_ESTIMATORS = {
@@ -267,6 +273,10 @@ def study_from_dict(table: dict[str, Any], where: str, base: Path | None, thread
             _no_duplicates(idx, what, bad)
         if any(s.name == scene.name for s in scenes):
             raise bad(f"two scenes are named {scene.name!r}; rows could not tell them apart")
+        if predictions and scene.receivers.image is not None and len(idx) > MAX_PREDICTED_PIXELS:
+            raise bad(f"scene {source!r}: predictions at {len(idx)} camera pixels would take hours (each receiver's "
+                      f"forms need about 10^6 dense points); choose at most {MAX_PREDICTED_PIXELS} with receivers, "
+                      f"set predictions = false, or use `warpis image`, which predicts every pixel's exact variance")
         scenes.append(StudyScene(source, scene, idx, scene_digest(scene)))
     # A cell's (receivers × trials) float64 estimates and the few same-sized temporaries of
     # variance_interval must fit, or the run would die after writing its first files.
@@ -363,7 +373,7 @@ def typed_row(raw: list[str]) -> dict[str, Any]:
                            "n": int(d["n"]), "trials": int(d["trials"]), "seed": int(d["seed"]),
                            "warpis_version": d["warpis_version"], "cell": d["cell"]}
     for k in ("mean", "mean_stderr", "reference", "reference_stderr", "variance", "variance_stderr",
-              "variance_lo", "variance_hi", "seconds"):
+              "variance_lo", "variance_hi", "seconds", "seconds_per_estimate", "efficiency"):
         row[k] = _parse(d[k])
     row["variance_ci"] = [row["variance_lo"], row["variance_hi"]]
     preds = {f: _parse(d[f"pred_{f}"]) for f in FORMS if d[f"pred_{f}"] != ""}
@@ -395,7 +405,8 @@ def csv_row(row: Row) -> list[str]:
             + [_num(x) for x in (row.mean, row.mean_stderr, row.reference, row.reference_stderr, row.variance,
                                  row.variance_stderr, row.variance_lo, row.variance_hi)]
             + [_num(row.predictions[f].value) if f in row.predictions else "" for f in FORMS]
-            + [_num(row.z.get(f)) for f in Z_FORMS])
+            + [_num(row.z.get(f)) for f in Z_FORMS]
+            + [_num(row.seconds_per_estimate), _num(row.efficiency)])
 
 
 # --------------------------------------------------------------------------- files
@@ -567,6 +578,61 @@ def _is_grid(s: StudyScene) -> bool:
     return s.scene.receivers.grid_shape is not None
 
 
+def _mapper(s: StudyScene) -> Callable[[dict[int, float]], np.ndarray] | None:
+    """Receiver → value dicts as 2D maps (NaN where absent): a camera's image, a receiver
+    grid, or None for receivers that form no picture."""
+    rx = s.scene.receivers
+    if rx.image is not None:
+        return lambda values: rx.image.to_image(_spread(values, len(rx)))
+    if rx.grid_shape is not None:
+        return lambda values: _spread(values, len(rx)).reshape(rx.grid_shape)
+    return None
+
+
+def _spread(values: dict[int, float], count: int) -> np.ndarray:
+    out = np.full(count, np.nan)
+    for r, v in values.items():
+        out[r] = np.nan if v is None else v
+    return out
+
+
+# Penumbra: a diffuse pixel receiving between these shares of its unoccluded light.
+PENUMBRA = (0.2, 0.8)
+
+
+def representative_pixels(s: StudyScene, rows: list[dict]) -> list[tuple[str, int]]:
+    """A camera scene's pixels whose convergence is worth a figure, from the references:
+    a lit pixel (diffuse, unoccluded, the median value among those), a penumbra pixel
+    (diffuse, closest to half its unoccluded value within ``PENUMBRA``) and a glossy
+    highlight (the brightest non-diffuse pixel).  Kinds the picture lacks are left out;
+    with none found, the brightest pixel stands in."""
+    from ..analysis.reference import unoccluded_lambert
+
+    ref = {r["receiver"]: r["reference"] for r in rows if r["scene"] == s.name}
+    idx = np.array([r for r in s.receivers if ref.get(r) is not None], dtype=np.int64)
+    if len(idx) == 0:
+        return []
+    value = np.array([ref[r] for r in idx])
+    rx = s.scene.receivers
+    diffuse = np.array([MATERIALS.by_code(c).diffuse for c in rx.material[idx]])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = value / unoccluded_lambert(s.scene, idx)
+    picked: list[tuple[str, int]] = []
+    lit = np.flatnonzero(diffuse & (share > 0.999) & (value > 0))
+    if len(lit):
+        order = lit[np.argsort(value[lit])]
+        picked.append(("lit", int(idx[order[len(order) // 2]])))
+    shade = np.flatnonzero(diffuse & (share > PENUMBRA[0]) & (share < PENUMBRA[1]))
+    if len(shade):
+        picked.append(("penumbra", int(idx[shade[np.argmin(np.abs(share[shade] - 0.5))]])))
+    glossy = np.flatnonzero(~diffuse & (value > 0))
+    if len(glossy):
+        picked.append(("glossy highlight", int(idx[glossy[np.argmax(value[glossy])]])))
+    if not picked:
+        picked.append(("brightest", int(idx[np.argmax(value)])))
+    return picked
+
+
 # --------------------------------------------------------------------------- running
 
 
@@ -645,7 +711,7 @@ def _resume(study: Study, cells: list[Cell], results: Path,
 
 # --------------------------------------------------------------------------- figures and report
 
-FIGURE_PREFIXES = ("convergence-", "variance-map-", "variance-ratio-", "calibration.")
+FIGURE_PREFIXES = ("convergence-", "variance-map-", "variance-ratio-", "slope-map-", "calibration.")
 
 
 def _index(rows: list[dict]) -> dict[tuple, dict]:
@@ -665,10 +731,19 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
     for s in study.scenes:
         slug = plots._slug(s.name)
         if "convergence" in study.outputs:
-            shown = s.receivers[:MAX_CONVERGENCE_RECEIVERS]
-            if len(s.receivers) > len(shown):
-                notes.append(f"{s.name}: convergence figures for the first {len(shown)} of its "
-                             f"{len(s.receivers)} receivers")
+            if s.scene.receivers.image is not None:
+                picked = representative_pixels(s, rows)
+                shown = [r for _, r in picked]
+                notes.append(f"{s.name}: convergence figures for representative pixels: "
+                             + "; ".join(f"{what}: receiver {r} (pixel row {p // w}, column {p % w})"
+                                         for what, r in picked
+                                         for p, w in [(int(s.scene.receivers.image.pixel[r]),
+                                                       s.scene.receivers.image.camera.width)]))
+            else:
+                shown = s.receivers[:MAX_CONVERGENCE_RECEIVERS]
+                if len(s.receivers) > len(shown):
+                    notes.append(f"{s.name}: convergence figures for the first {len(shown)} of its "
+                                 f"{len(s.receivers)} receivers")
             for r in shown:
                 series = []
                 for est in study.estimators:
@@ -691,29 +766,33 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
                 if not made and series:
                     notes.append(f"{s.name}, receiver {r}: zero variance under every estimator; no convergence figure")
                 paths += made
-        if "maps" in study.outputs and _is_grid(s):
-            rows_, cols_ = s.scene.receivers.grid_shape
-            grids = {}
-            for est in study.estimators:
-                for n in study.n:
-                    g = np.full(rows_ * cols_, np.nan)
-                    for r in s.receivers:
-                        c = at.get((s.name, r, est.spec, n))
-                        if c is not None:
-                            g[r] = c["variance"]
-                    grids[est.spec, n] = g.reshape(rows_, cols_)
+        to_map = _mapper(s)
+        if "maps" in study.outputs and to_map is not None:
+            origin = "upper" if s.scene.receivers.image is not None else "lower"
+            what = "the camera's pixels" if origin == "upper" else "the receiver grid"
+            grids = {(est.spec, n): to_map({r: at[s.name, r, est.spec, n]["variance"] for r in s.receivers
+                                            if (s.name, r, est.spec, n) in at})
+                     for est in study.estimators for n in study.n}
             for n in sorted(study.n):
                 paths += plots.variance_map_plot(
                     [(study.label(est), grids[est.spec, n]) for est in study.estimators],
-                    f"{s.name}: variance over the receiver grid, N = {n} (shared log scale)",
-                    fig_dir, f"variance-map-{slug}-n{n}")
+                    f"{s.name}: variance over {what}, N = {n} (shared log scale)",
+                    fig_dir, f"variance-map-{slug}-n{n}", origin)
             if len(study.estimators) >= 2:
                 ea, eb = study.estimators[0], study.estimators[1]
                 a, b = ea.spec, eb.spec
                 with np.errstate(all="ignore"):
                     ratio = [(f"N = {n}", grids[a, n] / grids[b, n]) for n in sorted(study.n)]
                 paths += plots.ratio_map_plot(ratio, f"{s.name}: variance of {study.label(ea)} / variance of "
-                                                     f"{study.label(eb)}", fig_dir, f"variance-ratio-{slug}")
+                                                     f"{study.label(eb)}", fig_dir, f"variance-ratio-{slug}", origin)
+            if origin == "upper" and len(study.n) >= 2:
+                slope_maps = [(study.label(est), to_map({r: f["slope"] for r in s.receivers
+                                                         if (f := fits.get((s.name, r, est.spec))) is not None
+                                                         and f["slope"] is not None}))
+                              for est in study.estimators]
+                paths += plots.slope_map_plot(slope_maps, f"{s.name}: convergence slope per pixel over N = "
+                                                          f"{', '.join(map(str, sorted(study.n)))}", fig_dir,
+                                              f"slope-map-{slug}")
     if "calibration" in study.outputs and study.predictions:
         paths += plots.calibration_plot(rows, fig_dir, stem="calibration")
     return paths, notes
@@ -741,6 +820,52 @@ def _est(study: Study, spec: str) -> str:
 
 def _g(x: float | None) -> str:
     return "" if x is None else f"{x:.4g}"
+
+
+def efficiencies(rows: list[dict], study: Study) -> list[dict[str, Any]]:
+    """Per N and estimator: the median over receivers of its efficiency relative to the
+    study's first estimator at the same receiver and N, and the share of receivers where
+    it is the most efficient (ties and unknown costs count for none)."""
+    by = {(r["scene"], r["receiver"], r["n"], r["estimator"]): r.get("efficiency") for r in rows}
+    base = study.estimators[0].spec
+    out = []
+    for n in study.n:
+        places = sorted({(sc, rc) for sc, rc, nn, _ in by if nn == n})
+        best: dict[tuple[str, int], str | None] = {}
+        for place in places:
+            effs = {e.spec: by.get((*place, n, e.spec)) for e in study.estimators}
+            known = {k: v for k, v in effs.items() if v is not None}
+            top = max(known.values(), default=None)
+            winners = [k for k, v in known.items() if v == top]
+            best[place] = winners[0] if len(winners) == 1 and len(known) == len(effs) else None
+        for est in study.estimators:
+            ratios = []
+            for place in places:
+                a, b = by.get((*place, n, est.spec)), by.get((*place, n, base))
+                if a is not None and b is not None and not (math.isinf(a) and math.isinf(b)) and b > 0:
+                    ratios.append(a / b)
+            out.append({"n": n, "estimator": est.spec, "median_relative_efficiency":
+                        float(np.median(ratios)) if ratios else None,
+                        "wins_share": sum(w == est.spec for w in best.values()) / len(places) if places else None})
+    return out
+
+
+def _efficiency_lines(study: Study, rows: list[dict]) -> list[str]:
+    table = efficiencies(rows, study)
+    if not any(t["median_relative_efficiency"] is not None for t in table):
+        return []
+    lines = ["", "## Efficiency", "",
+             f"Efficiency is 1/(variance × CPU seconds per estimate), the inverse of the time to reach unit variance "
+             f"(columns `seconds_per_estimate` and `efficiency` of `results.csv`).  Relative to "
+             f"{_est(study, study.estimators[0].spec)} at the same receiver and N: the median over receivers, and "
+             f"the share of receivers where the estimator is the most efficient.  Times depend on the machine and "
+             f"its load; ratios of estimators measured in one run are what carries over.", "",
+             "| N | estimator | median relative efficiency | most efficient at |", "| --- | --- | --- | --- |"]
+    for t in table:
+        eff = "" if t["median_relative_efficiency"] is None else f"{t['median_relative_efficiency']:.3g}"
+        share = "" if t["wins_share"] is None else f"{t['wins_share']:.0%}"
+        lines.append(f"| {t['n']} | {_est(study, t['estimator'])} | {eff} | {share} |")
+    return lines
 
 
 def report(study: Study, rows: list[dict], run: StudyRun) -> str:
@@ -795,6 +920,7 @@ def report(study: Study, rows: list[dict], run: StudyRun) -> str:
             lines.append(f"| {f['form']} | {'holds' if f['holds'] else '**fails**'} | {f['kind']} | "
                          f"{f['inside']}/{f['cells']} | {ratio} |")
 
+    lines += _efficiency_lines(study, rows)
     lines += ["", "## Figures", ""]
     if not run.figures:
         lines.append("None (the study's `outputs` asked for none, or nothing had a variance to draw).")
@@ -808,8 +934,11 @@ def report(study: Study, rows: list[dict], run: StudyRun) -> str:
         rel = f"figures/{path.name}"
         lines += [f"### {path.stem}", "", f"![{path.stem}]({rel})", "", f"[PDF](figures/{path.stem}.pdf)", ""]
 
-    lines += ["", "## Cells", "",
-              "| scene | receiver | estimator | N | mean | reference | variance | 95% interval | exact prediction "
+    lines += ["", "## Cells", ""]
+    if len(rows) > MAX_REPORT_ROWS:  # a camera's pixels: the table would bury the report
+        lines.append(f"{len(rows)} rows: see [`results.csv`](results.csv).")
+        return "\n".join(lines) + "\n"
+    lines += ["| scene | receiver | estimator | N | mean | reference | variance | 95% interval | exact prediction "
               "| measured/exact |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         exact = r["predictions"].get("exact")

@@ -72,7 +72,8 @@ def resolve_scene_path(name_or_path: str | Path, base: Path | None = Path()) -> 
     raise fail(where, f"no such scene file or bundled scene (bundled: {names})")
 
 def load_scene(scene: str | Path, device: str = "cpu", *, channel: str | None = None,
-               receivers: str | Path | None = None) -> Scene:
+               receivers: str | Path | None = None, camera: bool = False, width: int | None = None,
+               height: int | None = None) -> Scene:
     """Load and validate a scene file (or a bundled scene by name).
 
     Parameters
@@ -89,6 +90,10 @@ def load_scene(scene: str | Path, device: str = "cpu", *, channel: str | None = 
     receivers
         Mitsuba scenes: the receivers file (default ``<stem>.receivers.toml`` beside the
         XML).  A TOML scene lists its own receivers, so this is an error there.
+    camera, width, height
+        ``camera``: the receivers must be a camera's pixels (scenes/camera.py): a TOML
+        scene's ``[receivers.camera]``, or a Mitsuba scene's perspective sensor (then its
+        receivers file is optional).  ``width``/``height`` resize that camera.
 
     Returns
     -------
@@ -104,9 +109,13 @@ def load_scene(scene: str | Path, device: str = "cpu", *, channel: str | None = 
     file = resolve_scene_path(scene)
     suffix = file.suffix.lower()
     if suffix == ".xml":
-        return load_mitsuba(file, str(device), channel=channel, receivers=None if receivers is None else Path(receivers))
+        return load_mitsuba(file, str(device), channel=channel, receivers=None if receivers is None else Path(receivers),
+                            camera=camera, width=width, height=height)
     if receivers is not None:
         raise fail(file, "a receivers file goes with a Mitsuba scene (.xml); a TOML scene lists its own [[receivers]]")
     if channel is not None:
         check_channel(channel, file)
-    return SOURCES.get(suffix, load_toml)(file, str(device))
+    loaded = SOURCES.get(suffix, load_toml)(file, str(device), width=width, height=height)
+    if camera and loaded.receivers.image is None:
+        raise fail(file, "has no camera: an image needs [receivers.camera] in a TOML scene (README.md, \"Images\")")
+    return loaded

@@ -30,6 +30,7 @@ from ..kernels.device import ReceiverData, SceneData, check_device, upload
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
 from ..vocabulary import Material
+from .camera import ImageLayout
 
 # Emitter triangles whose area is below this fraction of their longest edge squared are
 # needles: no float32 ray can hit them reliably nor can they be sampled with a finite pdf.
@@ -84,6 +85,8 @@ class Receivers:
     k: np.ndarray = None  # type: ignore[assignment]  # (R, 3) float64, per channel
     specular: np.ndarray = None  # type: ignore[assignment]  # (R, 3) reflectance × channel weight
     specular_weight: np.ndarray = None  # type: ignore[assignment]  # (R,) roughplastic lobe choice
+    # A camera's receivers: which pixel each one is and what the others see (scenes/camera.py).
+    image: ImageLayout | None = None
 
     def __post_init__(self) -> None:
         count = len(self.positions)
@@ -475,6 +478,8 @@ def _check_receivers(rx: Receivers, where: object) -> None:
     _check_microfacet(rx, where)
     _check_groups(rx.group, rx.group_names, where)
     _grid_shape(rx.grid_shape, count, where)
+    if rx.image is not None and rx.image.pixel.shape != (count,):
+        raise fail(where, f"receivers: image.pixel has shape {rx.image.pixel.shape}, expected ({count},)")
 
 # Roughness below this makes D's peak (1/(π α²)) overflow the float32 products f is made
 # of at grazing half-vectors; Mitsuba's own smallest useful alpha is far above it.

@@ -42,6 +42,7 @@ from ..analysis.closed_form import triangle_irradiance
 from ..errors import fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
+from .camera import SURFACE_FIELDS, Camera, camera_receiver_arrays, cast_camera, image_side
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
                           _unit)
 from .toml_source import _check_keys, _require, _vector, _vectors, read_toml
@@ -126,7 +127,8 @@ def check_channel(channel: Any, where: object) -> str:
     return channel
 
 
-def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, receivers: Path | None = None) -> Scene:
+def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, receivers: Path | None = None,
+                 camera: bool = False, width: int | None = None, height: int | None = None) -> Scene:
     """The scene of the Mitsuba 3 XML file ``file`` (README.md, "Mitsuba scenes").
 
     Parameters
@@ -140,6 +142,11 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
         computes; None takes the receivers file's ``channel``, else ``"y"``.
     receivers
         The receivers file; None: ``<stem>.receivers.toml`` beside ``file``.
+    camera, width, height
+        With ``camera``, the receivers are the pixels of the file's first sensor (a
+        ``perspective`` one; ``width``/``height`` override its film size, keeping its
+        horizontal field of view) and the receivers file is optional (its name,
+        description and channel are still read; its receivers are not).
 
     Raises
     ------
@@ -154,18 +161,29 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
     if not file.is_file():
         raise fail(file, "no such Mitsuba scene file")
     sidecar = receivers_path(file) if receivers is None else Path(receivers)
-    side = _read_sidecar(sidecar, file)
+    if camera and (width is not None or height is not None):
+        for what, side_px in (("width", width), ("height", height)):
+            if side_px is not None:
+                image_side(side_px, what, file)
+    elif width is not None or height is not None:
+        raise fail(file, "width and height resize the camera of an image; this load has no camera")
+    side = _read_sidecar(sidecar, file, receivers_needed=not camera)
     channel = channel if channel is not None else side["channel"] or DEFAULT_CHANNEL
     weights = np.array(CHANNELS[channel])
     with _Mitsuba(file) as session:
         scene = session.load()
         shapes = _shapes(session, scene, file, weights)
         sensor = _sensor(session.mi, scene)
+        lens = _camera(session.mi, scene, file, width, height) if camera else None
         notes = [f"colour channel {channel}: {_CHANNEL_WORDS[channel]}"]
         notes += session.warnings()
     label = {i: s.label for i, s in enumerate(shapes)}
     vertices, triangles, emission, owner = _concatenate(shapes)
-    rx, receiver_notes, under = _receivers(side, shapes, vertices, triangles, owner, sensor, file, sidecar)
+    if lens is not None:
+        rx, receiver_notes, under = _camera_receivers(lens, shapes, vertices, triangles, emission, owner, file,
+                                                      str(device))
+    else:
+        rx, receiver_notes, under = _receivers(side, shapes, vertices, triangles, owner, sensor, file, sidecar)
     if channel == "y" and any(s.radiance is not None and not _grey(s.radiance) for s in shapes) and \
             any(not shapes[k].material.grey for k in under):
         notes.append("channel y multiplies the luminance of the emission by the luminance of the BSDF: with "
@@ -884,6 +902,69 @@ def _triple3(v: np.ndarray) -> str:
     return "(" + ", ".join(f"{x:.6g}" for x in v) + ")"
 
 
+def _camera(mi: Any, scene: Any, file: Path, width: int | None, height: int | None) -> Camera:
+    """The first sensor as a pinhole camera: a ``perspective`` sensor without principal
+    point offset or crop window, whose to_world is a rotation (a mirror allowed) and a
+    translation; ``width``/``height`` replace its film size (its horizontal field of
+    view, Mitsuba's x_fov, is kept, as Mitsuba keeps it when the film changes)."""
+    sensors = scene.sensors()
+    if not sensors:
+        raise fail(file, "has no <sensor>: an image needs a perspective sensor to take its pixels from")
+    sensor = sensors[0]
+    cls = sensor.class_name()
+    name = f"sensor {sensor.id()!r}" if sensor.id() else "the first sensor"
+    if cls != "PerspectiveCamera":
+        raise fail(file, f"{name} is a {_SENSOR_PLUGINS.get(cls, cls)!r} sensor: an image needs a 'perspective' "
+                         f"one (a pinhole camera)")
+    params = _params(mi, sensor)
+    if params.get("principal_point_offset_x", 0) or params.get("principal_point_offset_y", 0):
+        raise fail(file, f"{name}: a principal point offset is not supported (pixels would not be centred)")
+    film = sensor.film()
+    size = [int(x) for x in film.size()]
+    if [int(x) for x in film.crop_size()] != size or any(int(x) for x in film.crop_offset()):
+        raise fail(file, f"{name}: a crop window is not supported; give the film's full size instead")
+    if width is None and height is not None:
+        width = max(1, round(height * size[0] / size[1]))
+    if height is None and width is not None:
+        height = max(1, round(width * size[1] / size[0]))
+    w, h = (width, height) if width is not None else size
+    m = _matrix(sensor.world_transform())
+    frame = m[:3, :3]
+    lengths = np.linalg.norm(frame, axis=0)
+    if not (np.allclose(lengths, 1, atol=1e-5) and np.allclose(frame.T @ frame, np.eye(3), atol=1e-5)):
+        raise fail(file, f"{name}: its to_world scales or shears ({_triple3(lengths)} column lengths); a camera's "
+                         f"to_world must be a rotation (a mirror allowed) and a translation")
+    # Mitsuba's camera space: +z forward, +y up, +x towards the image's left edge.
+    fov = 2 * math.degrees(math.atan(math.tan(math.radians(float(params["x_fov"])) / 2) * h / w))
+    return Camera.framed(m[:3, 3].copy(), frame[:, 2].copy(), frame[:, 1].copy(), -frame[:, 0], fov, w, h, file)
+
+
+_SENSOR_PLUGINS = {"PerspectiveCamera": "perspective", "ThinLensCamera": "thinlens", "OrthographicCamera":
+                   "orthographic", "RadianceMeter": "radiancemeter", "IrradianceMeter": "irradiancemeter",
+                   "BatchSensor": "batch", "DistantSensor": "distant"}
+
+
+def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray, triangles: np.ndarray,
+                      emission: np.ndarray, owner: np.ndarray, file: Path, device: str
+                      ) -> tuple[Receivers, list[str], np.ndarray]:
+    """The camera's pixels as receivers, each with the material of the shape it sees."""
+    hits = cast_camera(camera, vertices, triangles, emission, owner, [s.material.twosided for s in shapes], device)
+    _receiver_count(len(hits.positions), f"the camera ({camera.width} × {camera.height})", file)
+    for k in np.unique(hits.mesh):
+        shapes[k].material.check(f"{file}: shape {shapes[k].label!r} (seen by the camera)")
+    surfaces = [{"material": MATERIALS[s.material.kind].code, "exponent": 1.0,
+                 **{name: getattr(s.material, name) for name in SURFACE_FIELDS if name not in ("material", "exponent")}}
+                for s in shapes]
+    arrays = camera_receiver_arrays(hits, surfaces, lambda m, c: "", file)
+    rx = Receivers(positions=hits.positions, normals=hits.normals, view=hits.view,
+                   group=np.zeros(len(hits.positions), np.int32), group_names=["camera"], image=hits.layout, **arrays)
+    notes = [camera.describe(), *hits.notes]
+    masked = hits.layout.masked_counts()
+    if masked["back"]:
+        notes.append(f"{masked['back']} pixel(s) see the back of a one-sided BSDF (Mitsuba returns 0 there): masked")
+    return rx, notes, np.unique(hits.mesh)
+
+
 # ----------------------------------------------------------------------------- receivers file
 
 
@@ -892,8 +973,11 @@ _GROUP_KEYS = {"name", "points", "normal", "normals", "view", "grid"}
 _GRID_KEYS = {"shape", "resolution"}
 
 
-def _read_sidecar(sidecar: Path, file: Path) -> dict[str, Any]:
-    """The receivers file, checked for its keys and their types."""
+def _read_sidecar(sidecar: Path, file: Path, receivers_needed: bool = True) -> dict[str, Any]:
+    """The receivers file, checked for its keys and their types (a camera's receivers are
+    its pixels: then the file may be missing and its receivers are not read)."""
+    if not receivers_needed and not sidecar.is_file():
+        return {"name": None, "description": "", "channel": None, "view": None, "groups": []}
     if not sidecar.is_file():
         raise fail(file, f"its receivers file {sidecar} does not exist: write one with [[receivers]] tables of "
                          f"points = [[x, y, z], ...] on the scene's surfaces, or grid = {{ shape = \"<id>\", "
@@ -906,6 +990,9 @@ def _read_sidecar(sidecar: Path, file: Path) -> dict[str, Any]:
     if "channel" in doc:
         check_channel(doc["channel"], sidecar)
     view = _vector(doc["view"], "view", sidecar) if "view" in doc else None
+    if not receivers_needed:
+        return {"name": doc.get("name"), "description": doc.get("description", ""), "channel": doc.get("channel"),
+                "view": view, "groups": []}
     spec = _require(doc, "receivers", "the top level", sidecar)
     specs = spec if isinstance(spec, list) else [spec]
     if not specs:

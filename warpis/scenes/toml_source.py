@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import math
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -21,6 +22,7 @@ from .. import limits
 from ..errors import WarpisError, fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
+from .camera import Camera, camera_receiver_arrays, cast_camera
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
                           _unit, grey_microfacet)
 
@@ -174,17 +176,21 @@ MATERIAL_PARAMETERS: dict[str, tuple[Callable[[Any, str, Path], Any], Any]] = {
     "specular": (_in_range(0.0, 1e3), MICROFACET_DEFAULTS["specular"]),
 }
 
-def _material(spec: Any, where: str, file: Path) -> dict[str, Any]:
+def _material(spec: Any, where: str, file: Path, camera: bool = False) -> dict[str, Any]:
+    """A material table; under a camera (``camera``) each pixel's view is its direction to
+    the camera, so ``view`` is neither required nor allowed."""
     if not isinstance(spec, dict):
         raise fail(file, f"{where} must be a table")
     kind = _require(spec, "type", where, file)
     if kind not in MATERIALS:
         raise fail(file, f"{where}.type {kind!r} is not one of {', '.join(MATERIALS)}")
     material = MATERIALS[kind]
-    _check_keys(spec, {"type", *material.keys}, where, file)
+    if camera and "view" in spec:
+        raise fail(file, f"{where}.view: a camera gives each pixel its own view (towards the camera); remove it")
+    _check_keys(spec, {"type", *material.keys} - ({"view"} if camera else set()), where, file)
     out: dict[str, Any] = {"code": material.code}
     for key, (parse, default) in MATERIAL_PARAMETERS.items():
-        if key in material.required:
+        if key in material.required and not (camera and key == "view"):
             out[key] = parse(_require(spec, key, where, file), f"{where}.{key}", file)
         elif key in spec:
             out[key] = parse(spec[key], f"{where}.{key}", file)
@@ -301,17 +307,40 @@ def read_toml(file: Path) -> dict:
     except OSError as exc:
         raise fail(file, f"cannot read: {exc.strerror}") from None
 
-def _meshes(doc: dict, file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
+@dataclass(frozen=True)
+class _Meshes:
+    """The scene's [[mesh]] tables, concatenated; ``surfaces``: each mesh's material row for a camera (or None)."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    emission: np.ndarray
+    owner: np.ndarray
+    paths: list[str]
+    surfaces: list[dict[str, Any] | None]
+
+
+def _surface(spec: Any, where: str, file: Path) -> dict[str, Any]:
+    """A [[mesh]] material as the receiver arrays its camera pixels take (camera.SURFACE_FIELDS)."""
+    return _surface_row(_material(spec, where, file, camera=True), file)
+
+
+def _surface_row(material: dict[str, Any], file: Path) -> dict[str, Any]:
+    microfacet = grey_microfacet(material, np.array([material["albedo"]]), 1, file)
+    return {"material": material["code"], "albedo": material["albedo"], "exponent": material["exponent"],
+            **{name: value[0] for name, value in microfacet.items()}}
+
+
+def _meshes(doc: dict, file: Path) -> _Meshes:
     entries = _require(doc, "mesh", "the scene", file)
     if not isinstance(entries, list) or not entries:
         raise fail(file, "the scene needs at least one [[mesh]]")
-    vertices, triangles, emission, owner, paths = [], [], [], [], []
+    vertices, triangles, emission, owner, paths, surfaces = [], [], [], [], [], []
     offset = 0
     for i, entry in enumerate(entries):
         where = f"[[mesh]] #{i + 1}"
         if not isinstance(entry, dict):
             raise fail(file, f"{where} must be a table")
-        _check_keys(entry, {"path", "emission", "transform", "name"}, where, file)
+        _check_keys(entry, {"path", "emission", "transform", "name", "material"}, where, file)
         rel = _require(entry, "path", where, file)
         if not isinstance(rel, str):
             raise fail(file, f"{where}.path must be a string")
@@ -332,11 +361,14 @@ def _meshes(doc: dict, file: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
         emission.append(np.full(len(f), float(radiance)))
         owner.append(np.full(len(f), i, np.int32))
         paths.append(rel)
+        surfaces.append(_surface(entry["material"], f"{where}.material", file) if "material" in entry else None)
         offset += len(v)
-    return np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission), np.concatenate(owner), paths
+    return _Meshes(np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission),
+                   np.concatenate(owner), paths, surfaces)
 
-def load_toml(file: Path, device: str = "cpu") -> Scene:
-    """The scene of the TOML scene file ``file`` on Warp device ``device`` (README.md, "Scene files")."""
+def load_toml(file: Path, device: str = "cpu", width: int | None = None, height: int | None = None) -> Scene:
+    """The scene of the TOML scene file ``file`` on Warp device ``device`` (README.md, "Scene files");
+    ``width``/``height`` resize its camera (a scene with [receivers.camera])."""
     doc = read_toml(file)
     _check_keys(doc, {"name", "description", "mesh", "receivers", "material"}, "the top level", file)
     name = doc.get("name", file.parent.name if file.name == "scene.toml" else file.stem)
@@ -344,9 +376,60 @@ def load_toml(file: Path, device: str = "cpu") -> Scene:
         raise fail(file, "name must be a string")
     if not isinstance(doc.get("description", ""), str):
         raise fail(file, "description must be a string")
-    vertices, triangles, emission, owner, paths = _meshes(doc, file)
-    receivers = _receivers(doc, file)
-    return _assemble(file, lambda m: file.parent / paths[m], "give some [[mesh]] an emission > 0", name=name,
-                     vertices=vertices, triangles=triangles, emission=emission, receivers=receivers,
-                     triangle_mesh=owner, mesh_names=paths, description=str(doc.get("description", "")),
-                     device=str(device), path=file)
+    meshes = _meshes(doc, file)
+    notes: tuple[str, ...] = ()
+    camera = _camera_spec(doc, file)
+    if camera is not None:
+        receivers, notes = _camera_receivers(camera.resized(width, height, file), meshes, doc, file, str(device))
+    elif width is not None or height is not None:
+        raise fail(file, "has no camera to resize: a camera scene has [receivers.camera] (README.md, \"Images\")")
+    else:
+        receivers = _receivers(doc, file)
+    return _assemble(file, lambda m: file.parent / meshes.paths[m], "give some [[mesh]] an emission > 0", name=name,
+                     vertices=meshes.vertices, triangles=meshes.triangles, emission=meshes.emission,
+                     receivers=receivers, triangle_mesh=meshes.owner, mesh_names=meshes.paths,
+                     description=str(doc.get("description", "")), device=str(device), path=file, notes=notes)
+
+
+_CAMERA_KEYS = {"position", "target", "up", "fov", "width", "height"}
+
+
+def _camera_spec(doc: dict, file: Path) -> Camera | None:
+    """The scene's [receivers.camera] (the only key of [receivers] then), or None."""
+    spec = doc.get("receivers")
+    if not isinstance(spec, dict) or "camera" not in spec:
+        return None
+    _check_keys(spec, {"camera"}, "[receivers] (a camera's receivers are its pixels)", file)
+    cam = spec["camera"]
+    if not isinstance(cam, dict):
+        raise fail(file, "[receivers.camera] must be a table")
+    _check_keys(cam, _CAMERA_KEYS, "[receivers.camera]", file)
+    where = "[receivers.camera]"
+    position = _vector(_require(cam, "position", where, file), f"{where}.position", file)
+    target = _vector(_require(cam, "target", where, file), f"{where}.target", file)
+    up = _vector(cam.get("up", [0.0, 0.0, 1.0]), f"{where}.up", file)
+    fov = _number(_require(cam, "fov", where, file), f"{where}.fov", file)
+    width, height = _require(cam, "width", where, file), _require(cam, "height", where, file)
+    return Camera.look_at(position, target, up, fov, width, height, file)
+
+
+def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, device: str
+                      ) -> tuple[Receivers, tuple[str, ...]]:
+    """The camera's pixels as receivers: each takes its mesh's material, else the scene's [material]."""
+    default = None
+    if "material" in doc:
+        default = _surface(doc["material"], "[material]", file)
+    surfaces = [s if s is not None else default for s in meshes.surfaces]
+    # TOML materials reflect on both sides: the normal is turned towards the camera.
+    hits = cast_camera(camera, meshes.vertices, meshes.triangles, meshes.emission, meshes.owner,
+                       [True] * len(meshes.paths), device)
+    _receiver_count(len(hits.positions), f"[receivers.camera] ({camera.width} × {camera.height})", file)
+
+    def unmaterialled(m: int, pixels: int) -> str:
+        return (f"[[mesh]] #{m + 1} ({meshes.paths[m]}) is seen by {pixels} camera pixel(s) but has no material: "
+                f"give it material = {{ type = ... }}, or give the scene a [material] table")
+
+    arrays = camera_receiver_arrays(hits, surfaces, unmaterialled, file)
+    rx = Receivers(positions=hits.positions, normals=hits.normals, view=hits.view,
+                   group=np.zeros(len(hits.positions), np.int32), group_names=["camera"], image=hits.layout, **arrays)
+    return rx, (camera.describe(),) + hits.notes

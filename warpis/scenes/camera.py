@@ -1,0 +1,222 @@
+"""Camera receivers: a pinhole camera turns every pixel into a receiver.
+
+Each pixel casts one primary ray through its centre (:func:`Camera.directions`); the first
+surface it meets becomes a receiver there, with the triangle's geometric normal turned
+towards the camera, the material of the mesh it belongs to, and the unit direction to
+the camera as its view.  A pixel is *masked* (no receiver, left out of every statistic)
+when it sees nothing, sees an emitter triangle (either side: warpis measures reflected
+direct light, not emission seen directly), or sees the back of a one-sided surface
+(Mitsuba returns 0 there).  :class:`ImageLayout` keeps which pixel each receiver is and
+why the others are masked, so that per-receiver numbers become images.
+
+Every scene source with a camera (a TOML scene's ``[receivers.camera]``, a Mitsuba
+file's ``perspective`` sensor) builds its receivers with :func:`camera_receivers` from
+one material row per mesh (:data:`SURFACE_FIELDS`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .. import limits
+from ..errors import WarpisError, fail
+from ..kernels.camera import first_hits
+
+# What a pixel sees (ImageLayout.seen).
+PIXEL_RECEIVER, PIXEL_NOTHING, PIXEL_EMITTER, PIXEL_BACK = 0, 1, 2, 3
+MASK_WORDS = {PIXEL_NOTHING: "sees nothing", PIXEL_EMITTER: "sees an emitter",
+              PIXEL_BACK: "sees the back of a one-sided surface"}
+# Largest image side: far beyond any variance study, small enough that W × H rays and
+# their receivers fit the kernels' int32 indices.
+MAX_SIDE = 1 << 14
+# The receiver arrays a mesh's material gives its pixels (one row per mesh; eta, k and
+# specular are (3,) per row, see description.Receivers).
+SURFACE_FIELDS = ("material", "albedo", "exponent", "alpha", "distribution", "sample_visible", "eta", "k",
+                  "specular", "specular_weight")
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera: position, unit forward, up and right (orthogonal; right is the image's
+    +x, which a mirrored camera points the other way), vertical field of view in degrees,
+    and the image size in pixels (row 0 at the top)."""
+
+    position: np.ndarray
+    forward: np.ndarray
+    up: np.ndarray
+    right: np.ndarray
+    fov: float
+    width: int
+    height: int
+
+    @classmethod
+    def look_at(cls, position: Any, target: Any, up: Any, fov: float, width: int, height: int,
+                where: object) -> Camera:
+        """A validated camera at ``position`` looking at ``target``; ``up`` need only not be
+        parallel to the view; ``fov`` is the vertical field of view in degrees."""
+        position, target, up = (np.asarray(v, np.float64) for v in (position, target, up))
+        for name, v in (("position", position), ("target", target), ("up", up)):
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise fail(where, f"camera {name}: expected three finite numbers, got {v.tolist()}")
+        try:
+            limits.coordinates(position[None], "camera position")
+        except WarpisError as exc:
+            raise fail(where, str(exc)) from None
+        forward = target - position
+        if not np.linalg.norm(forward) > 0:
+            raise fail(where, "camera target: equals the camera position, so the camera looks nowhere")
+        forward = forward / np.linalg.norm(forward)
+        right = np.cross(forward, up)
+        if not np.linalg.norm(right) > 1e-9 * np.linalg.norm(up):
+            raise fail(where, f"camera up {up.tolist()}: parallel to the view direction (or zero)")
+        right /= np.linalg.norm(right)
+        return cls.framed(position, forward, np.cross(right, forward), right, fov, width, height, where)
+
+    @classmethod
+    def framed(cls, position: np.ndarray, forward: np.ndarray, up: np.ndarray, right: np.ndarray, fov: float,
+               width: int, height: int, where: object) -> Camera:
+        """A validated camera from its orthonormal frame (forward, up, right)."""
+        if not (isinstance(fov, (int, float)) and not isinstance(fov, bool) and 0 < fov < 180):
+            raise fail(where, f"camera fov: expected a vertical field of view in degrees in (0, 180), got {fov!r}")
+        width, height = image_side(width, "width", where), image_side(height, "height", where)
+        try:
+            limits.memory(width * height * 64.0, f"a {width} × {height} camera")
+        except WarpisError as exc:
+            raise fail(where, str(exc)) from None
+        return cls(position, forward, up, right, float(fov), width, height)
+
+    def resized(self, width: int | None, height: int | None, where: object) -> Camera:
+        """The camera with a new image size (either side None: kept, or scaled with the
+        other to keep the aspect); the vertical field of view is kept."""
+        if width is None and height is None:
+            return self
+        if height is None:
+            height = max(1, round(image_side(width, "width", where) * self.height / self.width))
+        if width is None:
+            width = max(1, round(image_side(height, "height", where) * self.width / self.height))
+        return Camera.framed(self.position, self.forward, self.up, self.right, self.fov, width, height, where)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.height, self.width
+
+    def directions(self) -> np.ndarray:
+        """(H·W, 3) unit directions through the pixel centres, row-major from the top left."""
+        tan_y = math.tan(math.radians(self.fov) / 2)
+        tan_x = tan_y * self.width / self.height
+        right = self.right
+        x = ((np.arange(self.width) + 0.5) / self.width * 2 - 1) * tan_x
+        y = (1 - (np.arange(self.height) + 0.5) / self.height * 2) * tan_y
+        d = self.forward + x[None, :, None] * right + y[:, None, None] * self.up
+        d = d.reshape(-1, 3)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def describe(self) -> str:
+        p, f = self.position, self.position + self.forward
+        return (f"camera at ({', '.join(f'{x:.6g}' for x in p)}) looking towards "
+                f"({', '.join(f'{x:.6g}' for x in f)}), vertical field of view {self.fov:.6g}°, "
+                f"{self.width} × {self.height} pixels")
+
+
+def image_side(value: Any, what: str, where: object) -> int:
+    """An image width or height: an integer in [1, MAX_SIDE]."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not 1 <= value <= MAX_SIDE:
+        raise fail(where, f"camera {what}: expected an integer number of pixels in [1, {MAX_SIDE}], got {value!r}")
+    return int(value)
+
+
+@dataclass(frozen=True, eq=False)
+class ImageLayout:
+    """Which pixel each receiver is, and what every other pixel sees."""
+
+    camera: Camera
+    seen: np.ndarray  # (H, W) int8, PIXEL_*
+    pixel: np.ndarray  # (R,) int64: row-major index of receiver i's pixel
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.camera.shape
+
+    def to_image(self, values: np.ndarray, fill: float = math.nan) -> np.ndarray:
+        """(H, W) image of per-receiver ``values`` (R,), ``fill`` at masked pixels."""
+        out = np.full(self.shape[0] * self.shape[1], fill, dtype=np.result_type(values, type(fill)))
+        out[self.pixel] = values
+        return out.reshape(self.shape)
+
+    def masked_counts(self) -> dict[str, int]:
+        """How many pixels are masked, by reason."""
+        return {"nothing": int((self.seen == PIXEL_NOTHING).sum()), "emitter": int((self.seen == PIXEL_EMITTER).sum()),
+                "back": int((self.seen == PIXEL_BACK).sum())}
+
+
+@dataclass(frozen=True)
+class CameraHits:
+    """Receivers of a camera as arrays: positions, normals, views, the mesh of each, and the layout."""
+
+    positions: np.ndarray
+    normals: np.ndarray
+    view: np.ndarray
+    mesh: np.ndarray
+    layout: ImageLayout
+    notes: tuple[str, ...]
+
+
+def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
+                owner: np.ndarray, two_sided: Sequence[bool], device: str) -> CameraHits:
+    """Cast the camera's primary rays; the receivers they find and what each pixel sees."""
+    directions = camera.directions()
+    face = first_hits(vertices, triangles, camera.position, directions, device)
+    seen = np.full(len(face), PIXEL_NOTHING, np.int8)
+    hit = np.flatnonzero(face >= 0)
+    tri = face[hit]
+    v = vertices[triangles[tri]]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    d = directions[hit]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        dn = np.einsum("ij,ij->i", d, n)
+        # The hit point on the triangle's plane in float64 (the float32 ray's t is coarser).
+        t = np.einsum("ij,ij->i", v[:, 0] - camera.position, n) / dn
+    # A ray grazing a triangle edge-on, or one whose triangle has no area, finds no surface.
+    solid = np.isfinite(t) & (t > 0) & (np.abs(dn) > 1e-6)
+    notes = []
+    if not solid.all():
+        notes.append(f"{int((~solid).sum())} pixel(s) meet a triangle edge-on or one of zero area: masked as "
+                     f"seeing nothing")
+    emitter = emission[tri] > 0
+    back = (dn > 0) & ~np.asarray(two_sided, bool)[owner[tri]]
+    seen[hit[solid & emitter]] = PIXEL_EMITTER
+    seen[hit[solid & ~emitter & back]] = PIXEL_BACK
+    keep = solid & ~emitter & ~back
+    seen[hit[keep]] = PIXEL_RECEIVER
+    p = camera.position + t[keep, None] * d[keep]
+    normals = np.where((dn[keep] < 0)[:, None], n[keep], -n[keep])
+    view = -d[keep]
+    layout = ImageLayout(camera, seen.reshape(camera.shape), hit[keep].astype(np.int64))
+    return CameraHits(p, normals, view, owner[tri[keep]], layout, tuple(notes))
+
+
+def camera_receiver_arrays(hits: CameraHits, surfaces: Sequence[dict[str, Any] | None],
+                           unmaterialled: Callable[[int, int], str], where: object) -> dict[str, np.ndarray]:
+    """The Receivers arrays of ``SURFACE_FIELDS`` for the camera's receivers: each one takes
+    its mesh's row of ``surfaces``; a mesh seen by the camera with no material (None) is
+    an error, ``unmaterialled(mesh, pixels)`` saying which."""
+    if len(hits.mesh) == 0:
+        raise fail(where, f"the camera sees no surface that reflects light ({hits.layout.camera.describe()}; "
+                          f"masked: {hits.layout.masked_counts()})")
+    seen_meshes, counts = np.unique(hits.mesh, return_counts=True)
+    for m, c in zip(seen_meshes, counts):
+        if surfaces[m] is None:
+            raise fail(where, unmaterialled(int(m), int(c)))
+    out = {}
+    for name in SURFACE_FIELDS:
+        kind = np.int32 if name in ("material", "distribution", "sample_visible") else np.float64
+        table = np.array([np.zeros_like(surfaces[seen_meshes[0]][name]) if s is None else s[name] for s in surfaces],
+                         kind)
+        out[name] = table[hits.mesh]
+    return out
