@@ -615,8 +615,10 @@ def representative_pixels(s: StudyScene, rows: list[dict]) -> list[tuple[str, in
     value = np.array([ref[r] for r in idx])
     rx = s.scene.receivers
     diffuse = np.array([MATERIALS.by_code(c).diffuse for c in rx.material[idx]])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = value / unoccluded_lambert(s.scene, idx)
+    share = np.full(len(idx), np.nan)
+    if diffuse.any():  # the closed form costs milliseconds per pixel: only where it is read
+        with np.errstate(divide="ignore", invalid="ignore"):
+            share[diffuse] = value[diffuse] / unoccluded_lambert(s.scene, idx[diffuse])
     picked: list[tuple[str, int]] = []
     lit = np.flatnonzero(diffuse & (share > 0.999) & (value > 0))
     if len(lit):

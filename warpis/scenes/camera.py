@@ -201,11 +201,12 @@ def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emi
     return CameraHits(p, normals, view, owner[tri[keep]], layout, tuple(notes))
 
 
-def camera_receiver_arrays(hits: CameraHits, surfaces: Sequence[dict[str, Any] | None],
-                           unmaterialled: Callable[[int, int], str], where: object) -> dict[str, np.ndarray]:
-    """The Receivers arrays of ``SURFACE_FIELDS`` for the camera's receivers: each one takes
-    its mesh's row of ``surfaces``; a mesh seen by the camera with no material (None) is
-    an error, ``unmaterialled(mesh, pixels)`` saying which."""
+def camera_receiver_fields(hits: CameraHits, surfaces: Sequence[dict[str, Any] | None],
+                           unmaterialled: Callable[[int, int], str], where: object) -> dict[str, Any]:
+    """Every field of the Receivers of the camera's pixels (one group, "camera", and the
+    layout): each takes its mesh's row of ``surfaces`` (``SURFACE_FIELDS``); a mesh seen
+    by the camera with no material (None) is an error, ``unmaterialled(mesh, pixels)``
+    saying which."""
     if len(hits.mesh) == 0:
         raise fail(where, f"the camera sees no surface that reflects light ({hits.layout.camera.describe()}; "
                           f"masked: {hits.layout.masked_counts()})")
@@ -213,7 +214,9 @@ def camera_receiver_arrays(hits: CameraHits, surfaces: Sequence[dict[str, Any] |
     for m, c in zip(seen_meshes, counts):
         if surfaces[m] is None:
             raise fail(where, unmaterialled(int(m), int(c)))
-    out = {}
+    out: dict[str, Any] = {"positions": hits.positions, "normals": hits.normals, "view": hits.view,
+                           "group": np.zeros(len(hits.positions), np.int32), "group_names": ["camera"],
+                           "image": hits.layout}
     for name in SURFACE_FIELDS:
         kind = np.int32 if name in ("material", "distribution", "sample_visible") else np.float64
         table = np.array([np.zeros_like(surfaces[seen_meshes[0]][name]) if s is None else s[name] for s in surfaces],

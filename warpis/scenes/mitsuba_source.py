@@ -42,7 +42,7 @@ from ..analysis.closed_form import triangle_irradiance
 from ..errors import fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
-from .camera import SURFACE_FIELDS, Camera, camera_receiver_arrays, cast_camera, image_side
+from .camera import SURFACE_FIELDS, Camera, camera_receiver_fields, cast_camera, image_side
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
                           _unit)
 from .toml_source import _check_keys, _require, _vector, _vectors, read_toml
@@ -955,9 +955,8 @@ def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray
     surfaces = [{"material": MATERIALS[s.material.kind].code, "exponent": 1.0,
                  **{name: getattr(s.material, name) for name in SURFACE_FIELDS if name not in ("material", "exponent")}}
                 for s in shapes]
-    arrays = camera_receiver_arrays(hits, surfaces, lambda m, c: "", file)
-    rx = Receivers(positions=hits.positions, normals=hits.normals, view=hits.view,
-                   group=np.zeros(len(hits.positions), np.int32), group_names=["camera"], image=hits.layout, **arrays)
+    # Every shape has a material (an emitter's is its shell's), so no message is needed.
+    rx = Receivers(**camera_receiver_fields(hits, surfaces, lambda m, c: "", file))
     notes = [camera.describe(), *hits.notes]
     masked = hits.layout.masked_counts()
     if masked["back"]:

@@ -22,7 +22,7 @@ from .. import limits
 from ..errors import WarpisError, fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
-from .camera import Camera, camera_receiver_arrays, cast_camera
+from .camera import Camera, camera_receiver_fields, cast_camera
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
                           _unit, grey_microfacet)
 
@@ -429,7 +429,5 @@ def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, de
         return (f"[[mesh]] #{m + 1} ({meshes.paths[m]}) is seen by {pixels} camera pixel(s) but has no material: "
                 f"give it material = {{ type = ... }}, or give the scene a [material] table")
 
-    arrays = camera_receiver_arrays(hits, surfaces, unmaterialled, file)
-    rx = Receivers(positions=hits.positions, normals=hits.normals, view=hits.view,
-                   group=np.zeros(len(hits.positions), np.int32), group_names=["camera"], image=hits.layout, **arrays)
+    rx = Receivers(**camera_receiver_fields(hits, surfaces, unmaterialled, file))
     return rx, (camera.describe(),) + hits.notes
