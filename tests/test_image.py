@@ -144,6 +144,11 @@ def test_cli_writes_the_page_and_the_numbers(cli_run):
                               "back": int((mask == 3).sum())}
     assert [row["estimator"] for row in meta["summary"]] == meta["estimators"]
     assert all(row["predicted_pixels"] == meta["receivers"] for row in meta["summary"])
+    # The baseline beats itself nowhere and is at 1 across its pixels; the page shows the same columns.
+    base = meta["summary"][1]
+    assert base["beats_baseline_share"] == 0 and base["relative_efficiency_p05"] == base["relative_efficiency_p95"] == 1
+    page = (out / "index.html").read_text()
+    assert "pixels where it beats the baseline" in page and "5th – 95th percentile" in page
     assert "Traceback" not in cli_run["stderr"]
 
 

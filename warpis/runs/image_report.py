@@ -81,8 +81,8 @@ DESCRIPTIONS = {
     "single": "One trial of each estimator: what a render at N samples per pixel looks like, on the reference's "
               "scale from the mean picture.",
     "variance": f"Measured variance of one estimate per pixel, on one log scale shared with the predicted "
-                f"variance, from the {LOG_CLIP:g}th to the {100 - LOG_CLIP:g}th percentile (beyond: the end "
-                f"colours; {ZERO_NAME}: zero variance).",
+                f"variance, from the {LOG_CLIP:g}th to the {100 - LOG_CLIP:g}th percentile and at most "
+                f"{LOG_DECADES:g} decades (beyond: the end colours; {ZERO_NAME}: zero variance).",
     "predicted": f"Exact predicted variance on the measured variance's scale ({MISSING_NAME}: not predicted).",
     "ratio": f"Measured / predicted variance on a log scale centred on 1 (white), symmetric, spanning at most "
              f"{RATIO_CAP:g}x each way (beyond: the end colours); red: more variance than predicted "
@@ -515,9 +515,12 @@ def _summary_table(meta: Mapping[str, Any]) -> str:
     for i, row in enumerate(meta.get("summary", [])):
         tag = " (baseline)" if i == base else ""
         rows.append(f'<tr><td>{i}</td><td class="spec">{_e(row.get("estimator", ""))}{tag}</td>'
-                    f'<td>{_num(row.get("median_relative_efficiency"))}</td><td>{_share(row.get("wins_share"))}</td>'
+                    f'<td>{_num(row.get("median_relative_efficiency"))}</td>'
+                    f'<td>{_num(row.get("relative_efficiency_p05"))} – {_num(row.get("relative_efficiency_p95"))}</td>'
+                    f'<td>{_share(row.get("beats_baseline_share"))}</td><td>{_share(row.get("wins_share"))}</td>'
                     f'<td>{_num(row.get("median_variance"))}</td><td>{_num(row.get("median_ratio"))}</td></tr>')
     head = ('<tr><th>#</th><th class="spec">estimator</th><th>median relative efficiency</th>'
+            '<th>5th – 95th percentile</th><th>pixels where it beats the baseline</th>'
             '<th>pixels where most efficient</th><th>median variance</th><th>median measured / predicted</th></tr>')
     return "<table>\n" + head + "\n" + "\n".join(rows) + "\n</table>"
 
