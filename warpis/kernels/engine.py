@@ -356,6 +356,13 @@ def run_moments(
     return reducer.total
 
 
+def warm(scene: Scene, estimator: str | Estimator, n: int) -> None:
+    """Compile and load the trial kernel and build the scene's upload and light table with
+    one trial at one receiver, so that a timed run that follows measures its trials alone
+    (the light table of a large camera scene takes seconds; a first compile, tens)."""
+    run_trials(scene, estimator, n, 1, receivers=[0], threads=1)
+
+
 def block_count(trials: int) -> int:
     """The reduction blocks of ``trials`` trials: block b holds trials b·BLOCK … min((b+1)·BLOCK, trials) − 1."""
     return -(-trials // BLOCK)

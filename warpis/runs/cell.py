@@ -34,7 +34,7 @@ from ..analysis.reference import Reference, reference
 from ..analysis.stats import VarianceEstimate
 from ..analysis.theory import BOUNDS, Estimate, Moments, moments, predictions
 from ..errors import WarpisError
-from ..kernels.engine import run_moments
+from ..kernels.engine import run_moments, warm
 from ..kernels.estimators import Estimator
 from ..scenes import Scene
 
@@ -199,6 +199,7 @@ def measure_cell(scene: Scene, receivers: Sequence[int], estimator: Estimator, n
     check_trials(trials, "trials")
     start = time.perf_counter()
     rx = [int(r) for r in receivers]
+    warm(scene, estimator, n)  # a first compile or light table is not the trials' cost
     cpu = time.process_time()  # every thread's CPU time: the trials' cost whatever the thread count
     stats = run_moments(scene, estimator, n, trials, seed=seed, receivers=rx, threads=threads).interval(LEVEL)
     cost = (time.process_time() - cpu) / (len(rx) * trials)

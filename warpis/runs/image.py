@@ -39,7 +39,7 @@ from ..analysis.reference import reference
 from ..analysis.stats import SampleMoments
 from ..analysis.theory import exact_form_problem, exact_variances
 from ..errors import WarpisError, fail
-from ..kernels.engine import default_threads, run_moments, run_trials
+from ..kernels.engine import default_threads, run_moments, run_trials, warm
 from ..kernels.estimators import Estimator, parse_estimator
 from ..scenes import Scene
 from . import outdir
@@ -182,6 +182,7 @@ def measure(run: ImageRun, out: Path, progress: Progress | None = None, log: Log
     results = []
     scene_key = _scene_key(run.scene)
     for e, est in enumerate(run.estimators):
+        warm(run.scene, est, run.n)  # the tiles' times are the trials' alone
         parts = []
         for tile in tiles:
             key = _key(scene_key, est.spec, run.n, run.trials, run.seed, tile.start, tile.stop)
