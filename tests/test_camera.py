@@ -652,3 +652,21 @@ def test_mitsuba_size_options_need_a_camera(tmp_path, mi):
         with pytest.raises(WarpisError, match=r"camera width: expected an integer number of pixels") as excinfo:
             warpis.load_scene(path, camera=True, width=bad)
         assert str(excinfo.value).startswith(f"{path}: ")
+
+
+def test_info_describes_the_camera_and_its_masks(cli):
+    """`warpis info` on a camera scene names the camera and counts receivers and masked
+    pixels by reason, the same counts as the scene's layout."""
+    import json
+
+    import warpis
+
+    result = cli("info", "veach-plates-camera", "--json")
+    assert result.status == 0, result.err
+    notes = json.loads(result.out)["notes"]
+    layout = warpis.load_scene("veach-plates-camera").receivers.image
+    masked = layout.masked_counts()
+    assert any(n.startswith("camera at (0, -15, 6.5)") and "128 × 96 pixels" in n for n in notes)
+    assert (f"{len(layout.pixel)} of 12288 pixels are receivers; masked: {masked['nothing']} see nothing, "
+            f"{masked['emitter']} an emitter, 0 the back of a one-sided surface") in notes
+    assert len(layout.pixel) + sum(masked.values()) == 128 * 96

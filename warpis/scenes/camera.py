@@ -148,6 +148,13 @@ class ImageLayout:
         out[self.pixel] = values
         return out.reshape(self.shape)
 
+    def describe(self) -> str:
+        """One line for ``warpis info``: receivers and masked pixels by reason."""
+        masked = self.masked_counts()
+        return (f"{len(self.pixel)} of {self.shape[0] * self.shape[1]} pixels are receivers; masked: "
+                f"{masked['nothing']} see nothing, {masked['emitter']} an emitter, {masked['back']} the back of a "
+                f"one-sided surface")
+
     def masked_counts(self) -> dict[str, int]:
         """How many pixels are masked, by reason."""
         return {"nothing": int((self.seen == PIXEL_NOTHING).sum()), "emitter": int((self.seen == PIXEL_EMITTER).sum()),

@@ -957,7 +957,7 @@ def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray
                 for s in shapes]
     # Every shape has a material (an emitter's is its shell's), so no message is needed.
     rx = Receivers(**camera_receiver_fields(hits, surfaces, lambda m, c: "", file))
-    notes = [camera.describe(), *hits.notes]
+    notes = [camera.describe(), hits.layout.describe(), *hits.notes]
     masked = hits.layout.masked_counts()
     if masked["back"]:
         notes.append(f"{masked['back']} pixel(s) see the back of a one-sided BSDF (Mitsuba returns 0 there): masked")

@@ -430,4 +430,4 @@ def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, de
                 f"give it material = {{ type = ... }}, or give the scene a [material] table")
 
     rx = Receivers(**camera_receiver_fields(hits, surfaces, unmaterialled, file))
-    return rx, (camera.describe(),) + hits.notes
+    return rx, (camera.describe(), hits.layout.describe()) + hits.notes
