@@ -30,7 +30,7 @@ from warpis.kernels.engine import run_trials
 from warpis.kernels.estimators import parse_estimator
 from warpis.runs import image as image_run
 from warpis.runs import image_report
-from warpis.runs.image import ImageRun, _winner, parse_estimators, run_image
+from warpis.runs.image import ImageRun, _winner, run_image
 
 SINGLE = "jittered:single:light-area"
 BALANCE = "jittered:balance:light-solid-angle+bsdf"
@@ -79,7 +79,7 @@ def no_pictures(monkeypatch):
 
 def image(scene: warpis.Scene, out: Path, specs=SPECS, n: int = 4, trials: int = 16, seed: int = 0,
           points: int = 256, threads: int | None = 2, baseline: int = 0) -> image_run.ImageResult:
-    run = ImageRun(scene, parse_estimators(specs), n, trials, seed=seed, baseline=baseline, points=points,
+    run = ImageRun(scene, tuple(parse_estimator(s) for s in specs), n, trials, seed=seed, baseline=baseline, points=points,
                    threads=threads)
     return run_image(run, out)
 

@@ -263,13 +263,14 @@ def cmd_study(args: argparse.Namespace) -> int:
 def cmd_image(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from .kernels.estimators import parse_estimator
     from .runs import outdir
-    from .runs.image import PREDICTION_POINTS, ImageRun, json_safe, parse_estimators, run_image, summary_lines
+    from .runs.image import PREDICTION_POINTS, ImageRun, json_safe, run_image, summary_lines
     from .scenes import load_scene
 
-    estimators = parse_estimators(args.estimator)
+    estimators = tuple(parse_estimator(spec) for spec in args.estimator)
     for est in estimators:
-        est.check_n(args.n)
+        est.check_n(args.n)  # before the scene loads (ImageRun checks again, for the API)
     out = outdir.out_option(args.out)
     scene = load_scene(args.scene, device=args.device, channel=args.channel, receivers=args.receivers_file,
                        camera=True, width=args.width, height=args.height)

@@ -1,6 +1,6 @@
 """Ground truth F(x) per receiver: Lambert's closed form where exact, dense quadrature otherwise.
 
-The closed form (``closed_form.irradiance_closed_form``) is exact for irradiance and
+The closed form (``closed_form.triangle_irradiance``) is exact for irradiance and
 lambert receivers when no scene triangle meets any receiver–emitter pyramid.  Elsewhere
 (occluders, Phong receivers) F is integrated by dense stratified sampling with the same
 Warp integrand, as ``replicas`` independent jittered estimates whose spread gives the
@@ -47,7 +47,7 @@ from ..kernels.techniques import TECHNIQUES
 from ..limits import count as check_count
 from ..limits import seed as check_seed
 from ..scenes import Scene
-from .closed_form import irradiance_closed_form
+from .closed_form import pyramid_blockers, triangle_irradiance
 
 QUADRATURE_SAMPLES = 4096
 QUADRATURE_REPLICAS = 32
@@ -172,7 +172,8 @@ def reference(
     closed_form
         False integrates every receiver by quadrature (to test the quadrature where the
         closed form is known, or to skip the closed form's occlusion test, which costs
-        milliseconds per receiver against tessellated lights: camera images).
+        milliseconds per receiver against tessellated lights: camera images).  The test
+        runs only for diffuse receivers, the only ones whose closed form is F.
     """
     target = None if rel_error is None else check_rel_error(rel_error)
     budget = check_count(samples if samples is not None else
@@ -180,17 +181,15 @@ def reference(
     replicas = check_count(replicas, "replicas", minimum=2)
     seed = check_seed(seed)
     idx = select_receivers(scene, receivers)
-    if closed_form or target is not None:
-        values, exact, scale = _closed_form(scene, idx)
-    else:  # its exactness test costs ~10 ms per receiver on tessellated lights: skipped when unused
-        values, exact, scale = np.zeros(len(idx)), np.zeros(len(idx), bool), np.zeros(len(idx))
+    values, diffuse = _lambert(scene, idx)
+    exact = _unblocked(scene, idx, diffuse) if closed_form else np.zeros(len(idx), bool)
     out: dict[int, Reference] = {}
     for i, r in enumerate(idx):
-        if exact[i] and closed_form:
+        if exact[i]:
             out[int(r)] = Reference(int(r), float(values[i]), 0.0, "closed-form", 0, "", target,
                                     None if target is None else True)
     todo = [int(r) for r in idx if int(r) not in out]
-    floor = {int(r): FLOOR * float(scale[i]) for i, r in enumerate(idx)}
+    floor = {int(r): FLOOR * abs(float(values[i])) for i, r in enumerate(idx)}
     tick = _Ticker(progress)
     if target is None:
         out.update(fixed_quadrature(scene, todo, budget, replicas, seed, tick))
@@ -200,25 +199,38 @@ def reference(
     return [out[int(r)] for r in idx]
 
 
-def _closed_form(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Lambert values (× albedo/π for lambert), where they are exact, and the floor scale."""
+def _lambert(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each receiver's Lambert value with every occluder removed (× albedo/π for lambert
+    and phong; the irradiance for irradiance receivers), and whether its material is
+    diffuse (where that value is F itself when nothing occludes)."""
     rx = scene.receivers
     # The integrand shades at the receiver position x itself (no offset along n).
-    shading = rx.positions[idx]
-    values, exact = irradiance_closed_form(shading, rx.normals[idx], scene.triangle_vertices(), scene.emission)
+    values = triangle_irradiance(rx.positions[idx], rx.normals[idx], scene.triangle_vertices(), scene.emission)
     diffuse = np.zeros(len(idx), bool)
     albedo = np.empty(len(idx))
     for material in MATERIALS.values():
         mine = rx.material[idx] == material.code
         diffuse[mine] = material.diffuse
         albedo[mine] = material.lambert_scale(rx, idx[mine])
-    return values * albedo, exact & diffuse, np.abs(values * albedo)
+    return values * albedo, diffuse
+
+
+def _unblocked(scene: Scene, idx: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """Where no scene triangle meets any receiver–emitter pyramid (the closed form is
+    exact), tested only for the receivers ``among`` (the test costs milliseconds per
+    receiver against tessellated lights); False elsewhere."""
+    out = np.zeros(len(idx), bool)
+    if among.any():
+        rx, sel = scene.receivers, idx[among]
+        out[among] = ~pyramid_blockers(rx.positions[sel], rx.normals[sel], scene.triangle_vertices(),
+                                       scene.emission != 0.0)
+    return out
 
 
 def unoccluded_lambert(scene: Scene, receivers: Sequence[int]) -> np.ndarray:
     """(R,) each receiver's Lambert value with every occluder removed (× albedo/π for
     lambert and phong): the scale of its value, and the light it would get unshadowed."""
-    return _closed_form(scene, np.asarray(receivers, dtype=np.int64))[2]
+    return np.abs(_lambert(scene, np.asarray(receivers, dtype=np.int64))[0])
 
 
 class _Ticker:

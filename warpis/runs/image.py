@@ -27,7 +27,7 @@ import math
 import time
 import zipfile
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -40,7 +40,7 @@ from ..analysis.stats import SampleMoments
 from ..analysis.theory import exact_form_problem, exact_variances
 from ..errors import WarpisError, fail
 from ..kernels.engine import default_threads, run_moments, run_trials, warm
-from ..kernels.estimators import Estimator, parse_estimator
+from ..kernels.estimators import Estimator
 from ..scenes import Scene
 from . import outdir
 from .cell import check_trials
@@ -402,6 +402,3 @@ def summary_lines(result: ImageResult) -> list[str]:
                  f"unmasked pixels; beats base: share of pixels where it is above 1; wins: share where it is the best")
     return lines
 
-
-def parse_estimators(specs: Sequence[str]) -> tuple[Estimator, ...]:
-    return tuple(parse_estimator(s) for s in specs)
