@@ -179,7 +179,7 @@ MUTANTS: tuple[Mutant, ...] = (
            "back = (dn > 0) & np.zeros(len(two_sided), bool)[owner[tri]]", ("tests/test_camera.py",)),
     # ------------------------------------------------------------------ images (runs/image.py)
     Mutant("image-efficiency-ignores-cost", "efficiency 1/variance, the time per estimate forgotten",
-           "warpis/runs/image.py", "assemble", 'eff = 1.0 / (var * m["cost"])', "eff = 1.0 / var",
+           "warpis/runs/image.py", "assemble", "eff = 1.0 / (var * cost)", "eff = 1.0 / var",
            ("tests/test_image.py",)),
     Mutant("image-tile-key-ignores-seed", "a tile's file name leaves out the seed (another seed's tiles are read)",
            "warpis/runs/image.py", "measure", "run.n, run.trials, run.seed, tile.start", "run.n, run.trials, tile.start",

@@ -273,7 +273,8 @@ def assemble(run: ImageRun, measured: list[dict[str, np.ndarray]], singles: list
         for i, (m, single, pred) in enumerate(zip(measured, singles, predicted)):
             stats = SampleMoments(m["count"], m["mean"], m["m2"], m["m3"], m["m4"]).interval()
             var = stats.variance
-            eff = 1.0 / (var * m["cost"])
+            cost = np.where(m["cost"] > 0, m["cost"], np.nan)  # a clock that saw no time gives no efficiency
+            eff = 1.0 / (var * cost)
             variances.append(var)
             efficiencies.append(eff)
             p = np.full(len(var), np.nan) if pred is None else pred["value"]
