@@ -198,7 +198,7 @@ def test_estimate_is_reproducible(cli):
 
 
 BAD_OPTIONS = {
-    "estimator-not-three-parts": (["--estimator", "light-area"], "PATTERN:COMBINER:TECH"),
+    "estimator-not-three-parts": (["--estimator", "light-area"], "PATTERN:COMBINER[=VALUE]:TECH"),
     "unknown-pattern": (["--estimator", "sobolish:single:light-area"], "unknown pattern"),
     "unknown-combiner": (["--estimator", "independent:average:light-area"], "unknown combiner"),
     "unknown-technique": (["--estimator", "independent:single:torch"], "unknown technique"),

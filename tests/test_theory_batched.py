@@ -139,7 +139,8 @@ def test_the_result_is_read_only(scenes):
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"estimator": "lhs:single:cosine"}, "no block decomposition"),
+    ({"estimator": "cmj:single:cosine"}, "no block decomposition nor pair form"),
+    ({"estimator": "jittered:optimal:light-area+cosine"}, "ratio estimate from a random pilot"),
     ({"estimator": "jittered:balance:light-area+cosine", "n": 15}, "not divisible"),
     ({"n": 0}, "N: must be at least 1"),
     ({"points": 0}, "points: must be at least 1"),

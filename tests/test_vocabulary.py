@@ -99,19 +99,24 @@ def test_pattern_blocks_cover_its_samples(name):
 @pytest.mark.parametrize("combiner", COMBINERS)
 def test_every_pattern_and_combiner_checks_n_from_its_entries(pattern, combiner):
     """check_n and KernelArgs follow the registry: N/N_g per technique where the combiner
-    splits N, an even m for paired patterns, the entries' codes for the kernel."""
+    splits N, less its pilot where it has one (at least one sample left), an even m for
+    paired patterns, the entries' codes for the kernel."""
     comb = COMBINERS[combiner]
     techs = ("light-area", "cosine") if comb.several else ("light-area",)
     est = Estimator(pattern, combiner, techs)
     for n in range(1, 41):
         m = n // len(techs) if comb.splits_n else n
-        ok = not (comb.splits_n and n % len(techs)) and PATTERNS[pattern].problem(m) is None
+        pilot = comb.pilot(m) if comb.pilot else 0
+        ok = (not (comb.splits_n and n % len(techs)) and m - pilot >= 1
+              and PATTERNS[pattern].problem(m - pilot) is None)
         if not ok:
             with pytest.raises(warpis.WarpisError):
                 est.check_n(n)
             continue
         args = KernelArgs.of(est, n)
-        assert (args.pattern, args.combiner, args.m) == (PATTERNS[pattern].code, comb.code, m)
+        assert (args.pattern, args.combiner, args.m, args.pilot) == (PATTERNS[pattern].code, comb.code, m - pilot,
+                                                                      pilot)
+        m -= pilot
         assert args.techniques == tuple(TECHNIQUES[t].code for t in techs)
         assert (args.rows, args.cols) == grid_shape(m)
 
@@ -134,14 +139,17 @@ def test_expected_slopes_come_from_the_registry():
 
 def test_combiner_entries_are_consistent():
     """verify's patterns are registered; one-technique combiners place all N; every
-    combiner's default verify estimators parse, under every pattern with an exact form;
-    the help names every entry."""
+    combiner with an exact form has default verify estimators, which parse, under every
+    pattern with an exact form (blocks or a pair form); a combiner without one (the
+    optimal pilot) says why; the help names every entry."""
     for combiner in COMBINERS.values():
         assert combiner.verify_under is None or set(combiner.verify_under) <= set(PATTERNS)
         assert combiner.several or not combiner.splits_n
+        assert (combiner.weights is None) == (combiner.no_exact_form is not None) == (combiner.verify_under == ())
     ests = default_estimators(("light-area", "cosine"))
-    assert {e.combiner for e in ests} == set(COMBINERS)
-    assert {e.pattern for e in ests} == {name for name, entry in PATTERNS.items() if entry.blocks is not None}
+    assert {e.combiner for e in ests} == {name for name, c in COMBINERS.items() if c.weights is not None}
+    assert {e.pattern for e in ests} == {name for name, entry in PATTERNS.items()
+                                         if entry.blocks is not None or entry.sum_variance is not None}
     assert len({e.spec for e in ests}) == len(ests)
     text = estimator_help()
     for registry in (PATTERNS, COMBINERS, TECHNIQUES):

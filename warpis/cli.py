@@ -194,12 +194,14 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                               threads=args.threads, progress=bar)
     stats = moments.interval()
     refs = reference(scene, args.receivers)
+    alphas = _optimal_alphas(scene, est, args)
     rows = []
     for i, ref in enumerate(refs):
         rows.append({
             "index": ref.index, "mean": float(stats.mean[i]), "stderr": float(stats.mean_stderr[i]),
             "variance": float(stats.variance[i]), "variance_ci": [float(stats.lo[i]), float(stats.hi[i])],
             "reference": ref.value, "reference_stderr": ref.stderr, "reference_method": ref.method,
+            **({} if alphas is None else {key: value[i].tolist() for key, value in alphas.items()}),
         })
     data = {"scene": scene.name, "estimator": est.spec, "n": args.n, "trials": args.trials, "seed": args.seed,
             "receivers": rows}
@@ -212,8 +214,35 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         lo, hi = r["variance_ci"]
         lines.append(f"{r['index']:>8} {r['mean']:>13.7g} {r['stderr']:>10.3g} {r['variance']:>11.4g} "
                      f"{f'[{lo:.4g}, {hi:.4g}]':>25} {r['reference']:>13.7g} {r['reference_stderr']:>10.3g} {z:>6.2f}")
+    if alphas is not None:
+        lines += _alpha_lines(est, rows)
     _emit(data, args.json, "\n".join(lines))
     return 0
+
+
+def _optimal_alphas(scene: Any, est: Any, args: argparse.Namespace) -> dict[str, Any] | None:
+    """The optimal combiners' α per receiver: the oracle's (``alpha``), or the pilot's mean
+    and standard deviation over the run's trials (``alpha_mean``, ``alpha_sd``); None for
+    any other combiner."""
+    from .analysis.theory import optimal_alpha
+    from .kernels.engine import pilot_alphas, select_receivers
+
+    if est.combiner_entry.oracle:
+        return {"alpha": optimal_alpha(scene, select_receivers(scene, args.receivers), est.techniques)}
+    if est.combiner_entry.pilot:
+        per_trial = pilot_alphas(scene, est, args.n, args.trials, seed=args.seed, receivers=args.receivers)
+        return {"alpha_mean": per_trial.mean(axis=1), "alpha_sd": per_trial.std(axis=1)}
+    return None
+
+
+def _alpha_lines(est: Any, rows: list[dict[str, Any]]) -> list[str]:
+    names = ", ".join(f"α_{t}" for t in est.techniques)
+    if est.combiner_entry.oracle:
+        head = f"optimal-MIS coefficients ({names}) from warpis's dense evaluation, α = A⁻¹b:"
+        return [head] + [f"{r['index']:>8}  " + "  ".join(f"{a:.6g}" for a in r["alpha"]) for r in rows]
+    head = f"optimal-MIS coefficients ({names}) from each trial's pilot: mean ± sd over the trials:"
+    return [head] + [f"{r['index']:>8}  " + "  ".join(f"{a:.6g} ± {d:.3g}" for a, d in zip(r["alpha_mean"], r["alpha_sd"]))
+                     for r in rows]
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
@@ -489,7 +518,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = scene_command("estimate", "run M independent trials of one estimator; mean, variance and its interval",
                       epilog=estimator_help())
-    c.add_argument("--estimator", required=True, help="PATTERN:COMBINER:TECH[+TECH...], "
+    c.add_argument("--estimator", required=True, help="PATTERN:COMBINER[=VALUE]:TECH[+TECH...], "
                                                       "e.g. jittered:balance:light-area+cosine")
     c.add_argument("--n", type=_positive, required=True, help="samples per estimate (N)")
     c.add_argument("--trials", type=_positive, default=1000, help="independent trials (M, default 1000)")
@@ -516,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
     c = scene_command("image", "every pixel of the scene's camera a receiver: mean, variance, predicted variance and "
                                "efficiency images per estimator, with an index.html", epilog=estimator_help())
     c.add_argument("--estimator", required=True, action="append",
-                   help="PATTERN:COMBINER:TECH[+TECH...]; repeat for several estimators")
+                   help="PATTERN:COMBINER[=VALUE]:TECH[+TECH...]; repeat for several estimators")
     c.add_argument("--n", type=_positive, required=True, help="samples per estimate (N)")
     c.add_argument("--trials", type=_positive, default=256, help="trials per pixel (M, default 256)")
     c.add_argument("--seed", type=_seed, default=0, help="random seed in [0, 2^32) (default 0)")

@@ -220,7 +220,10 @@ class Pattern(Entry):
     # m → the strata per side its points must land in exactly (None: it stratifies nothing);
     # float32 resolves at most MAX_CELLS_PER_SIDE of them
     strata: Callable[[int], int] | None = None
-    blocks: Callable[[int], Blocks] | None = None  # m samples → independent blocks; None: no exact form
+    blocks: Callable[[int], Blocks] | None = None  # m samples → independent blocks; None: no block form
+    # Var(Σ ψ) over its m points from pairs of points, for a set that is not independent
+    # blocks (analysis/point_sets: a SumVarianceForm); None with blocks None: no exact form
+    sum_variance: Callable[..., Any] | None = None
     slope: Slope | None = None  # expected convergence (for a stratifying combiner); None: none stated
 
     def problem(self, m: int) -> str | None:
@@ -249,10 +252,40 @@ def every_sample(m: int) -> int:
 
 # --------------------------------------------------------------------------- combiners
 
+@dataclass(frozen=True)
+class WeightContext:
+    """What a combiner's weights may read besides f and the pdfs."""
+
+    parameter: float | None = None  # the spec's COMBINER=VALUE (cutoff's α), or its default
+    alpha: np.ndarray | None = None  # (P, N_g) optimal-MIS coefficients at each sample's receiver
+
+
 # ψ_k: the value a sample of technique k adds to the combiner's sum, from f (P,) and the
-# pdfs of every technique of the set (P, N_g) at the sample's direction (theory.py masks
-# samples with f = 0 or g_k = 0).  Each mirrors its branch in estimators.stratified_trial.
-Weights = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
+# pdfs of every technique of the set (P, N_g) at the sample's direction.  theory.py sets ψ
+# to 0 where f = 0 or g_k = 0, except for a combiner with ``every_sample``, which gets the
+# pdfs at every sample (all 0 at a failed one) and says itself what each adds.  Each
+# mirrors its branch in estimators.py.
+Weights = Callable[[int, np.ndarray, np.ndarray, WeightContext], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A number a combiner takes from its spelling, ``COMBINER=VALUE``."""
+
+    name: str  # what it is called in messages and docs, e.g. "α"
+    default: float
+    low: float  # valid values: low ≤ value ≤ high
+    high: float
+
+    def parse(self, text: str) -> float:
+        """``text`` as a valid value, or a one-line problem (ValueError)."""
+        try:
+            value = float(text)
+        except ValueError:
+            raise ValueError(f"{self.name} must be a number (got {text!r})") from None
+        if not (math.isfinite(value) and self.low <= value <= self.high):
+            raise ValueError(f"{self.name} must lie in [{self.low:g}, {self.high:g}] (got {text})")
+        return value
 
 
 
@@ -266,11 +299,25 @@ class Combiner(Entry):
     divides_by_n: bool = False  # estimate = Σ_k Σ_i ψ_k / (m·N_g) (balance); else / m, as the kernel does
     unbiased: bool = True  # converges to F (biased converges to ∫ f g)
     weights: Weights | None = None  # numpy twin of ψ_k for the theory; None: no exact form
+    no_exact_form: str | None = None  # why it has no weights, where that is the mathematics, not a gap
     verify_under: tuple[str, ...] | None = None  # patterns `warpis verify` runs it under by default (None: all)
+    parameter: Parameter | None = None  # a number spelled COMBINER=VALUE (None: takes none)
+    every_sample: bool = False  # its ψ needs every technique's pdf at every sample, f = 0 or not
+    # samples per technique (of N/N_g) spent on an independent pilot before the pattern's
+    # points; None: no pilot
+    pilot: Callable[[int], int] | None = None
+    oracle: bool = False  # reads per-receiver coefficients computed from warpis's dense evaluation
+    max_techniques: int | None = None  # most techniques it combines (the kernels' fixed-size vectors)
 
     def per_technique(self, n: int, techniques: int) -> int:
-        """m: the samples each technique's pattern places."""
-        return n // techniques if self.splits_n else n
+        """m: the samples each technique's pattern places (after its pilot, if any)."""
+        m = n // techniques if self.splits_n else n
+        return m - self.pilot(m) if self.pilot else m
+
+    def pilot_samples(self, n: int, techniques: int) -> int:
+        """Samples each technique spends on the pilot (0 without one)."""
+        m = n // techniques if self.splits_n else n
+        return self.pilot(m) if self.pilot else 0
 
     def scale(self, m: int, techniques: int) -> float:
         """c in estimate = c · Σ_k Σ_i ψ_k."""

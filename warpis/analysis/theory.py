@@ -15,6 +15,12 @@ f(T_k(u)) and the pdf of every technique of the set at T_k(u).  From those:
   Var = c² Σ_k Σ_b Var(block sum) — a sum of within-block variances, never a difference of
   two large numbers.  The mixture's random technique choice enters through the moments
   given u: E[ψ|u] = mean_k ψ_k(u), E[ψ²|u] = mean_k ψ_k(u)².
+* **Point sets that are not independent blocks** (lhs, lattice, sobol, halton): their
+  pattern's pair form (``Pattern.sum_variance``, analysis/point_sets) gives Var(Σ ψ) of
+  each technique stream from ψ at the points it asks for (``pair_variance``).
+* **Optimal MIS**: the oracle's α = A⁻¹b per receiver (``optimal_alpha``, which the
+  engine passes to the kernel), and Kondapaneni et al.'s optimum (1/m)(∫ f²/Σg − bᵀA⁻¹b)
+  (the form ``optimal-ab``).
 * **Exact variances of many receivers** (``exact_variances``, a variance image): the
   same at a fixed density, every receiver of a launch at the same points.
 * **Reference moments** (``moments``): I, I_k, E_ḡ[h²], E_{g_k}[(f/g_k)²], ∫ f g_k,
@@ -53,7 +59,8 @@ from ..kernels.patterns import PATTERNS
 from ..kernels.techniques import (TECHNIQUES, LightTable, dispatch, light_table, sample_direction, technique_pdf,
                                   user_techniques)
 from ..scenes import Scene
-from ..vocabulary import Blocks
+from ..vocabulary import Blocks, WeightContext
+from .point_sets import MAX_POINTS_PER_CALL
 
 REL_TOL = 0.01
 REPLICAS = 8
@@ -68,24 +75,31 @@ SEED = 0x7E0
 def _make_evaluate_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -> Any:
     @wp.kernel(module=module)
     def evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
-                        techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2),
+                        techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2), every: wp.int32,
                         f_out: wp.array2d(dtype=wp.float64), pdf_out: wp.array3d(dtype=wp.float64)):
         """f and every technique's pdf at the direction technique k maps u[j] to, seen
         from receiver receivers[i].
 
-        f is found first and the pdfs only where it is > 0: ψ is 0 wherever f is, and
-        a light pdf (a traversal of the emitters) costs more than the shadow ray.  A
-        sample whose own pdf is 0 (a failed sample) has f = 0, as in the estimators.
+        Unless ``every`` is set, f is found first and the pdfs only where it is > 0: ψ is
+        0 wherever f is, and a light pdf (a traversal of the emitters) costs more than the
+        shadow ray.  With ``every`` (optimal MIS, whose ψ is non-zero where f is 0) the
+        pdfs are found at every sample.  A sample whose own pdf is 0 (a failed sample) has
+        f = 0 and every pdf 0, as in the estimators.
         """
         i, j = wp.tid()
         sp = shading_point(scene, recv, receivers[i])
         w = sample_direction(techs[k], scene, table, sp, u[j])
         f = float(0.0)
-        if wp.length_sq(w) > 0.0:
-            f = integrand(scene, sp, w)
         own = float(0.0)
-        if f > 0.0:
-            own = technique_pdf(techs[k], scene, table, sp, w)
+        if wp.length_sq(w) > 0.0:
+            if every != 0:
+                own = technique_pdf(techs[k], scene, table, sp, w)
+                if own > 0.0:
+                    f = integrand(scene, sp, w)
+            else:
+                f = integrand(scene, sp, w)
+                if f > 0.0:
+                    own = technique_pdf(techs[k], scene, table, sp, w)
         if own <= 0.0:
             f = float(0.0)
         for t in range(techs.shape[0]):
@@ -135,10 +149,12 @@ class _Evaluator:
         """Compile the kernel once, before threads race to."""
         wp.load_module(self.kernel.module, device=self.up.device)
 
-    def __call__(self, rows: np.ndarray, k: int, u: np.ndarray, pieces: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        """f (R, P) and the pdfs (R, P, N_g; 0 where f is) at T_k(u) seen from receivers
-        ``rows`` (R,), for points u (P, 2).  The points split into ``pieces`` launches on
-        as many threads (a CPU launch runs on one core and releases the GIL)."""
+    def __call__(self, rows: np.ndarray, k: int, u: np.ndarray, pieces: int = 1, every: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """f (R, P) and the pdfs (R, P, N_g; 0 where f is, unless ``every``; 0 at a failed
+        sample) at T_k(u) seen from receivers ``rows`` (R,), for points u (P, 2).  The
+        points split into ``pieces`` launches on as many threads (a CPU launch runs on one
+        core and releases the GIL)."""
         dev = self.up.device
         receivers = wp.array(np.asarray(rows, np.int32), dtype=wp.int32, device=dev)
         f_all = np.empty((len(rows), len(u)))
@@ -149,7 +165,8 @@ class _Evaluator:
             f = wp.empty((len(rows), hi - lo), dtype=wp.float64, device=dev)
             pdf = wp.empty((len(rows), hi - lo, self.techniques), dtype=wp.float64, device=dev)
             wp.launch(self.kernel, dim=(len(rows), hi - lo), device=dev,
-                      inputs=[self.up.data, self.up.receiver_data, self.table, receivers, self.codes, k, uu, f, pdf])
+                      inputs=[self.up.data, self.up.receiver_data, self.table, receivers, self.codes, k, uu,
+                              int(every), f, pdf])
             f_all[:, lo:hi] = f.numpy()
             pdf_all[:, lo:hi] = pdf.numpy()
 
@@ -179,15 +196,87 @@ def evaluate(scene: Scene, receiver: int, techniques: tuple[str, ...], k: int, u
     return f[0], pdf[0]
 
 
-def weighted_values(combiner: str, k: int, f: np.ndarray, pdf: np.ndarray) -> np.ndarray:
+def weighted_values(combiner: str, k: int, f: np.ndarray, pdf: np.ndarray, ctx: WeightContext = WeightContext()
+                    ) -> np.ndarray:
     """ψ_k: the value a sample of technique k adds to the combiner's sum (its registry
-    entry's numpy weights; see estimators.py), 0 where f or g_k is 0."""
-    weights = COMBINERS[combiner].weights
-    if weights is None:  # exact_form_problem tells the callers first
+    entry's numpy weights; see estimators.py), 0 where f or g_k is 0 unless the combiner
+    counts every sample (its weights then say what a failed sample adds)."""
+    entry = COMBINERS[combiner]
+    if entry.weights is None:  # exact_form_problem tells the callers first
         raise WarpisError(f"combiner {combiner!r} has no numpy weights")
+    if ctx.parameter is None and entry.parameter is not None:
+        ctx = WeightContext(entry.parameter.default, ctx.alpha)
     with np.errstate(divide="ignore", invalid="ignore"):
-        out = weights(k, f, pdf)
+        out = entry.weights(k, f, pdf, ctx)
+    if entry.every_sample:
+        return out
     return np.where((pdf[:, k] > 0) & (f > 0), out, 0.0)
+
+
+# Dense points per technique and receiver behind the optimal-oracle's α (a 64 × 64 jittered grid).
+ORACLE_POINTS = 1 << 12
+
+
+def optimal_alpha(scene: Scene, receivers: Sequence[int], techniques: tuple[str, ...], points: int = ORACLE_POINTS,
+                  seed: int = SEED) -> np.ndarray:
+    """α = A⁻¹b of Kondapaneni et al.'s optimal MIS at each receiver ((R, N_g)), the
+    coefficients the optimal-oracle uses (docs/theory.md, "Optimal MIS").
+
+    A_ij = ∫ g_i g_j / Σ_l g_l and b_i = ∫ f g_i / Σ_l g_l over the extended domain (a
+    failed sample of technique k is a point of its own where only g_k is non-zero), each
+    estimated as Σ_t E_t[r_i r_j] and Σ_t E_t[(f/Σ_l g_l) r_i] with r = g/Σ_l g_l (r = e_t
+    at technique t's failures), over sub × sub jittered points of every technique.  The
+    points depend only on ``seed`` and ``points``, and each receiver's α only on its own
+    values, so a receiver's α is the same whatever else is asked for: it is kept with the
+    scene's upload.  α = 0 (the balance heuristic) where A is singular to working
+    precision, as in the kernel's pilot.
+    """
+    rows = limits.receiver_indices(receivers, "optimal_alpha: receivers", len(scene.receivers))
+    cache = upload(scene).cached("optimal_alpha", dict)
+
+    def key(r: int) -> tuple:
+        return r, tuple(techniques), points, seed
+
+    missing = np.array([r for r in dict.fromkeys(rows.tolist()) if key(r) not in cache], np.int32)
+    if len(missing):
+        for r, alpha in zip(missing.tolist(), _solve_alpha(scene, missing, tuple(techniques), points, seed)):
+            cache[key(r)] = alpha
+    return np.array([cache[key(r)] for r in rows.tolist()]).reshape(len(rows), len(techniques))
+
+
+def _extended_terms(f: np.ndarray, pdf: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
+    """r = g/Σ_l g_l (e_t at a failed sample of technique t, where every pdf is 0) and
+    f/Σ_l g_l (0 there), from f (...,) and the pdfs (..., N_g) of technique t's samples:
+    the terms of A and b over the extended domain (estimators.optimal_terms in the kernel)."""
+    total = pdf.sum(axis=-1, keepdims=True)
+    valid = pdf[..., t:t + 1] > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (np.where(valid, pdf / total, np.eye(pdf.shape[-1])[t]),
+                np.where(valid[..., 0], f / total[..., 0], 0.0))
+
+
+def _solve_alpha(scene: Scene, rows: np.ndarray, techniques: tuple[str, ...], points: int, seed: int) -> np.ndarray:
+    n_g = len(techniques)
+    sub = max(1, math.isqrt(points))
+    u = _points(Blocks(1, 1, (1, 1), False), sub, 1, np.random.default_rng([seed, sub, 0xA1FA])).reshape(-1, 2)
+    ev = _Evaluator.of(scene, techniques)
+    a = np.zeros((len(rows), n_g, n_g))
+    b = np.zeros((len(rows), n_g))
+
+    def chunk(lo: int, hi: int, pieces: int) -> None:
+        for t in range(n_g):
+            r, fs = _extended_terms(*ev(rows[lo:hi], t, u, pieces, every=True), t)
+            a[lo:hi] += np.einsum("rpi,rpj->rij", r, r) / len(u)
+            b[lo:hi] += np.einsum("rp,rpi->ri", fs, r) / len(u)
+
+    most = max(1, CHUNK_BYTES // (8 * len(u) * (3 * n_g + 4)))
+    _run_chunks(ev, len(rows), most, default_threads(), chunk, None)
+    largest = np.max(np.diagonal(a, axis1=1, axis2=2), axis=1)
+    singular = ~(np.abs(np.linalg.det(a)) > 1e-10 * largest ** n_g)
+    a[singular] = np.eye(n_g)
+    alpha = np.linalg.solve(a, b[..., None])[..., 0]
+    alpha[singular] = 0.0
+    return alpha
 
 
 # --------------------------------------------------------------------------- blocks
@@ -280,27 +369,33 @@ class Variances:
 
 
 def exact_form_problem(est: Estimator) -> str | None:
-    """Why ``est`` has no exact variance (an entry registered without its theory), or None."""
-    if est.pattern_entry.blocks is None:
-        return f"pattern {est.pattern!r} has no block decomposition, so no exact variance"
+    """Why ``est`` has no exact variance (an entry registered without its theory, or a
+    combiner whose variance has no closed form), or None."""
+    pattern = est.pattern_entry
+    if pattern.blocks is None and pattern.sum_variance is None:
+        return f"pattern {est.pattern!r} has no block decomposition nor pair form, so no exact variance"
     if est.combiner_entry.weights is None:
-        return f"combiner {est.combiner!r} has no numpy weights, so no exact variance"
+        reason = est.combiner_entry.no_exact_form or "it has no numpy weights"
+        return f"combiner {est.combiner!r} has no exact variance: {reason}"
     return None
 
 
-def _exact_estimator(estimator: str | Estimator, n: int) -> tuple[Estimator, Blocks, float]:
-    """The estimator, the blocks of each technique's m samples and the factor c² ·
-    multiplicity of Var = c² · multiplicity · Σ_k Σ_b Var(block sum); a one-line
-    WarpisError for an N it cannot take or where it has no exact form."""
+def _exact_estimator(estimator: str | Estimator, n: int) -> tuple[Estimator, int, Blocks | None, float]:
+    """The estimator, m, the blocks of each technique's m samples (None for a pattern with
+    a pair form) and the factor of Var = factor · Σ_k Σ_b Var(block sum) (c² · multiplicity;
+    c² for a pair form, whose Var(Σ ψ) covers all m points); a one-line WarpisError for an
+    N it cannot take or where it has no exact form."""
     est = parse_estimator(estimator)
     est.check_n(n)
     problem = exact_form_problem(est)
     if problem:
         raise WarpisError(f"estimator {est.spec!r}: {problem}")
     m = est.per_technique(n)
-    blocks = est.pattern_entry.blocks(m)
     c = est.combiner_entry.scale(m, est.technique_count)
-    return est, blocks, c * c * blocks.multiplicity
+    if est.pattern_entry.blocks is None:
+        return est, m, None, c * c
+    blocks = est.pattern_entry.blocks(m)
+    return est, m, blocks, c * c * blocks.multiplicity
 
 
 def exact_variances(scene: Scene, receivers: Sequence[int], estimator: str | Estimator, n: int,
@@ -330,13 +425,16 @@ def exact_variances(scene: Scene, receivers: Sequence[int], estimator: str | Est
     (``exact_form_problem``), cannot take N = ``n``, or ``points``, ``receivers``,
     ``seed`` or ``threads`` are not valid.
     """
-    est, blocks, scale = _exact_estimator(estimator, n)
+    est, m, blocks, scale = _exact_estimator(estimator, n)
     budget = limits.count(points, "exact_variances: points")
     rows = limits.receiver_indices(receivers, "exact_variances: receivers", len(scene.receivers))
     seed = limits.seed(seed, "exact_variances: seed")
     workers = default_threads() if threads is None else limits.count(threads, "exact_variances: threads")
-    sub = max(1, math.isqrt(budget // (blocks.count * REPLICAS)))
-    value, stderr, used = _block_variances(scene, rows, est, blocks, sub, seed, workers, progress)
+    if blocks is None:
+        value, stderr, used = _pair_variances(scene, rows, est, m, budget, seed, workers, progress)
+    else:
+        sub = max(1, math.isqrt(budget // (blocks.count * REPLICAS)))
+        value, stderr, used = _block_variances(scene, rows, est, blocks, sub, seed, workers, progress)
     return Variances(_frozen(scale * value), _frozen(scale * stderr), used)
 
 
@@ -355,13 +453,70 @@ def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: i
     same for every N.  A one-line
     WarpisError where the estimator has no exact form (``exact_form_problem``).
     """
-    est, blocks, scale = _exact_estimator(estimator, n)
+    est, m, blocks, scale = _exact_estimator(estimator, n)
     cache = upload(scene).cached("block_variance", dict)  # kept per content and device
-    key = (receiver, est.pattern, est.combiner, est.techniques, blocks.count, blocks.cells, rel_tol, seed, max_points)
+    layout = (m,) if blocks is None else (blocks.count, blocks.cells)
+    key = (receiver, est.pattern, est.combiner, est.parameter_value, est.techniques, layout, rel_tol, seed, max_points)
     if key not in cache:
-        cache[key] = block_variance(scene, receiver, est, blocks, rel_tol, seed, max_points)
+        if blocks is None:
+            cache[key] = pair_variance(scene, receiver, est, m, rel_tol, seed, max_points)
+        else:
+            cache[key] = block_variance(scene, receiver, est, blocks, rel_tol, seed, max_points)
     v = cache[key]
     return Estimate(scale * v.value, scale * v.stderr, v.points)
+
+
+def pair_variance(scene: Scene, receiver: int, est: Estimator, m: int, rel_tol: float = REL_TOL,
+                  seed: int = SEED, max_points: int = MAX_POINTS) -> Estimate:
+    """Σ over technique streams of Var(Σ_{i<m} ψ(u_i)) under a pattern with a pair form
+    (``Pattern.sum_variance``, analysis/point_sets), to ``rel_tol``: the budget starts at
+    ``MIN_POINTS`` per technique and rises ×4 until the relative error is ≤ ``rel_tol``
+    or the next step would pass ``max_points``, as :func:`block_variance` does."""
+    rows = np.array([receiver], np.int32)
+    budget = MIN_POINTS
+    while True:
+        value, stderr, points = _pair_variances(scene, rows, est, m, budget, seed, default_threads(), None)
+        result = Estimate(float(value[0]), float(stderr[0]), points)
+        if result.rel_error <= rel_tol or budget * 4 > max_points:
+            return result
+        budget *= 4
+
+
+def _alpha_for(scene: Scene, rows: np.ndarray, est: Estimator) -> np.ndarray | None:
+    """The optimal-oracle's α at each receiver of ``rows`` (those the kernel uses), or None."""
+    return optimal_alpha(scene, rows, est.techniques) if est.combiner_entry.oracle else None
+
+
+def _pair_variances(scene: Scene, rows: np.ndarray, est: Estimator, m: int, budget: int, seed: int, workers: int,
+                    progress: Callable[[int, int], None] | None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Σ over technique streams of Var(Σ_{i<m} ψ(u_i)) at each receiver of ``rows`` and its
+    stderr (each (R,)) from the pattern's pair form at ``budget`` points per technique,
+    and the dense points evaluated per receiver.  Every chunk of receivers gives the form
+    the same generator state, so every receiver sees the same points."""
+    form = est.pattern_entry.sum_variance
+    assert form is not None
+    n_g = est.technique_count
+    ev = _Evaluator.of(scene, est.techniques)
+    alpha = _alpha_for(scene, rows, est)
+    streams = [tuple(range(n_g))] if est.combiner_entry.random_pick else [(k,) for k in range(n_g)]
+    value, var = np.zeros(len(rows)), np.zeros(len(rows))
+    used = [0] * len(streams)
+
+    def chunk(lo: int, hi: int, pieces: int) -> None:
+        part = None if alpha is None else alpha[lo:hi]
+        for index, ks in enumerate(streams):
+            def values(u: np.ndarray, ks: tuple[int, ...] = ks) -> tuple[np.ndarray, np.ndarray]:
+                psi = [_psi(ev, rows[lo:hi], est, k, u, pieces, part) for k in ks]
+                return sum(psi) / len(ks), sum(x * x for x in psi) / len(ks)
+
+            result = form(values, m, budget, np.random.default_rng([seed, m, index, 0x9A1]))
+            value[lo:hi] += result.value
+            var[lo:hi] += result.stderr ** 2
+            used[index] = result.points * len(ks)
+
+    per_row = 8 * MAX_POINTS_PER_CALL * (2 * (n_g + 1) + 2 * len(streams[0]) + 6)
+    _run_chunks(ev, len(rows), max(1, CHUNK_BYTES // per_row), workers, chunk, progress)
+    return value, np.sqrt(var), sum(used)
 
 
 def block_variance(scene: Scene, receiver: int, est: Estimator, blocks: Blocks, rel_tol: float = REL_TOL,
@@ -401,10 +556,12 @@ def _block_variances(scene: Scene, rows: np.ndarray, est: Estimator, blocks: Blo
     """
     u = _points(blocks, sub, REPLICAS, np.random.default_rng([seed, blocks.count, *blocks.cells, sub]))
     ev = _Evaluator.of(scene, est.techniques)
+    alpha = _alpha_for(scene, rows, est)
     value, var = np.zeros(len(rows)), np.zeros(len(rows))
 
     def chunk(lo: int, hi: int, pieces: int) -> None:
-        for q, p in _block_moments(ev, rows[lo:hi], est, blocks, u, pieces):
+        part = None if alpha is None else alpha[lo:hi]
+        for q, p in _block_moments(ev, rows[lo:hi], est, blocks, u, pieces, part):
             v, se = _jackknife(q, p)
             value[lo:hi] += v
             var[lo:hi] += se * se
@@ -466,7 +623,7 @@ def _run_chunks(ev: _Evaluator, count: int, most: int, workers: int, chunk: Call
 
 
 def _block_moments(ev: _Evaluator, rows: np.ndarray, est: Estimator, blocks: Blocks, u: np.ndarray,
-                   pieces: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                   pieces: int, alpha: np.ndarray | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Per technique stream: per-replica block means of Q = E[X²|u] and P = E[X|u],
     shifted, at each receiver of ``rows``: each (R, B, replicas).
 
@@ -483,7 +640,7 @@ def _block_moments(ev: _Evaluator, rows: np.ndarray, est: Estimator, blocks: Blo
     # average over the techniques.  Otherwise each technique is its own stream.
     streams = [tuple(range(n_g))] if est.combiner_entry.random_pick else [(k,) for k in range(n_g)]
     for ks in streams:
-        psi = [_psi(ev, rows, est.combiner, k, at, pieces) for k in ks]
+        psi = [_psi(ev, rows, est, k, at, pieces, alpha) for k in ks]
         shift = (sum(x[:, :count] for x in psi) / len(ks))[:, None, None, :, None]
         shifted = [x[:, count:].reshape(dense_shape) - shift for x in psi]
         del psi
@@ -498,10 +655,14 @@ def _block_moments(ev: _Evaluator, rows: np.ndarray, est: Estimator, blocks: Blo
         yield _per_block(q), _per_block(p)
 
 
-def _psi(ev: _Evaluator, rows: np.ndarray, combiner: str, k: int, at: np.ndarray, pieces: int) -> np.ndarray:
-    """(R, P) weighted values ψ_k at T_k(at) seen from each receiver of ``rows``."""
-    f, pdf = ev(rows, k, at, pieces)
-    return weighted_values(combiner, k, f.reshape(-1), pdf.reshape(-1, ev.techniques)).reshape(f.shape)
+def _psi(ev: _Evaluator, rows: np.ndarray, est: Estimator, k: int, at: np.ndarray, pieces: int,
+         alpha: np.ndarray | None) -> np.ndarray:
+    """(R, P) weighted values ψ_k at T_k(at) seen from each receiver of ``rows`` (``alpha``:
+    the optimal-oracle's (R, N_g) coefficients, or None)."""
+    f, pdf = ev(rows, k, at, pieces, every=est.combiner_entry.every_sample)
+    per_point = None if alpha is None else np.repeat(alpha, f.shape[1], axis=0)
+    ctx = WeightContext(est.parameter_value, per_point)
+    return weighted_values(est.combiner, k, f.reshape(-1), pdf.reshape(-1, ev.techniques), ctx).reshape(f.shape)
 
 
 def _per_block(x: np.ndarray) -> np.ndarray:
@@ -714,6 +875,45 @@ def _veach_bound(c: _Cell) -> Estimate | str:
     return Estimate(v.value + (1 / m - 1 / c.n) * c.mom.I.value**2, v.stderr)
 
 
+def _optimal_ab(c: _Cell) -> Estimate:
+    """Kondapaneni et al.'s variance of optimal MIS under independent samples, from A and b:
+    (1/m)(∫ f²/Σ_l g_l − bᵀA⁻¹b) at α = A⁻¹b (docs/theory.md, "Optimal MIS"), with A, b and
+    ∫ f²/Σ_l g_l from their own dense points (not the kernel's α): the best any α gives."""
+    m = c.est.per_technique(c.n)
+    a, b, f2 = _optimal_integrals(c.scene, c.receiver, c.est.techniques)
+
+    def variance(keep: np.ndarray) -> float:
+        am, bm = a[keep].mean(axis=0), b[keep].mean(axis=0)
+        return float((f2[keep].mean() - bm @ np.linalg.lstsq(am, bm, rcond=None)[0]) / m)
+
+    r = len(f2)
+    full = variance(np.ones(r, bool))
+    leave = np.array([variance(np.arange(r) != i) for i in range(r)])
+    points = r * OPTIMAL_SUB * OPTIMAL_SUB * c.est.technique_count
+    return Estimate(full, float(math.sqrt((r - 1) / r * ((leave - leave.mean()) ** 2).sum())), points)
+
+
+# sub × sub jittered points per replica and technique behind optimal-ab's A, b and ∫ f²/Σ g.
+OPTIMAL_SUB = 128
+
+
+def _optimal_integrals(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int = OPTIMAL_SUB,
+                       seed: int = SEED) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per replica (``REPLICAS`` of sub² jittered points per technique): A (r, N_g, N_g),
+    b (r, N_g) and ∫ f²/Σ_l g_l (r,), each Σ_t E_t[·] over the extended domain."""
+    n_g = len(techniques)
+    u = _points(Blocks(1, 1, (1, 1), False), sub, REPLICAS, np.random.default_rng([seed, receiver, 0xAB]))
+    ev = _Evaluator.of(scene, techniques)
+    a, b, f2 = np.zeros((REPLICAS, n_g, n_g)), np.zeros((REPLICAS, n_g)), np.zeros(REPLICAS)
+    for t in range(n_g):
+        f, pdf = ev(np.array([receiver], np.int32), t, u.reshape(-1, 2), default_threads(), every=True)
+        r, fs = _extended_terms(f.reshape(REPLICAS, -1), pdf.reshape(REPLICAS, -1, n_g), t)
+        a += np.einsum("rpi,rpj->rij", r, r) / r.shape[1]
+        b += np.einsum("rp,rpi->ri", fs, r) / r.shape[1]
+        f2 += (fs * fs).mean(axis=1)
+    return a, b, f2
+
+
 @dataclass(frozen=True)
 class Form:
     """A prediction: the estimators it describes, what it needs of their registry entries
@@ -757,6 +957,7 @@ FORMS: tuple[Form, ...] = (
     Form("antithetic-exact", Scope("antithetic"), _exact, needs=exact_form_problem),
     Form("jittered-antithetic-exact", Scope("jittered-antithetic"), _exact, needs=exact_form_problem),
     Form("veach-bound", Scope(combiner="balance"), _veach_bound, bound=True, needs=_power_exact_known),
+    Form("optimal-ab", Scope("independent", "optimal-oracle"), _optimal_ab),
     Form("exact", Scope(), _exact, needs=exact_form_problem),
 )
 BOUNDS = tuple(f.name for f in FORMS if f.bound)

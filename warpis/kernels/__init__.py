@@ -5,7 +5,7 @@
 * ``warps`` — square → hemisphere/triangle maps;
 * ``techniques`` — direction sampling and pdfs (the ``TECHNIQUES`` registry);
 * ``integrand`` — the BRDF and f at a receiver (the ``MATERIALS`` registry);
-* ``estimators`` — one trial of PATTERN:COMBINER:TECH[+TECH...] (the ``COMBINERS`` registry);
+* ``estimators`` — one trial of PATTERN:COMBINER[=VALUE]:TECH[+TECH...] (the ``COMBINERS`` registry);
 * ``device`` — a scene uploaded to a Warp device, cached by content digest and device;
 * ``engine`` — the launch loop: trials (or their moments) over receivers.
 """

@@ -31,7 +31,7 @@ from .. import limits
 from ..analysis.stats import SampleMoments
 from ..errors import WarpisError
 from .device import DeviceScene, upload
-from .estimators import Estimator, KernelArgs, parse_estimator, trial_kernel_for_registry
+from .estimators import Estimator, KernelArgs, parse_estimator, pilot_kernel_for_registry, trial_kernel_for_registry
 from .techniques import light_table
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
@@ -109,8 +109,20 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     dev = up.device
     head = (up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
-    tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols)
+    tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols, args.pilot,
+            args.parameter, wp.array(_alphas(scene, est, rx), dtype=wp.vec4d, device=dev))
     return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry(), first)
+
+
+def _alphas(scene: Scene, est: Estimator, rows: np.ndarray) -> np.ndarray:
+    """The optimal-oracle's coefficients at each receiver of ``rows``, zero-padded to four
+    ((R, 4)); one unread row for every other combiner."""
+    if not est.combiner_entry.oracle:
+        return np.zeros((1, 4))
+    from ..analysis.theory import optimal_alpha  # theory builds on the engine
+
+    alpha = optimal_alpha(scene, rows, est.techniques)
+    return np.pad(alpha, ((0, 0), (0, 4 - alpha.shape[1])))
 
 
 def _chunk_size(job: _Job, chunk: int | None, workers: int) -> int:
@@ -398,3 +410,24 @@ def run_block_moments(
     assert reducer.blocks is not None and not reducer.partial and not reducer.waiting
     assert len(reducer.blocks) == len(blocks)
     return reducer.blocks
+
+
+def pilot_alphas(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed: int = 0,
+                 receivers: Sequence[int] | None = None) -> np.ndarray:
+    """The α the optimal combiner's pilot finds at each receiver in each trial, exactly as
+    the trial kernel does: (R, M, N_g).  A one-line WarpisError for an estimator without a
+    pilot or for arguments the kernels cannot take."""
+    est = parse_estimator(estimator)
+    if not est.combiner_entry.pilot:
+        raise WarpisError(f"estimator {est.spec!r}: combiner {est.combiner!r} has no pilot")
+    args = KernelArgs.of(est, limits.count(n, "n"))
+    trials = limits.count(trials, "trials")
+    rx = select_receivers(scene, receivers)
+    limits.memory(len(rx) * trials * 32, "pilot coefficients")
+    up = upload(scene)
+    out = wp.empty((len(rx), trials), dtype=wp.vec4d, device=up.device)
+    techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=up.device)
+    wp.launch(pilot_kernel_for_registry(), dim=(len(rx), trials), device=up.device,
+              inputs=[up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=up.device),
+                      wp.uint32(limits.seed(seed)), techs, args.pilot, out])
+    return out.numpy()[..., :est.technique_count]

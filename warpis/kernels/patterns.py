@@ -6,8 +6,9 @@ square as m allows), ``antithetic`` (pairs u and (1,1) − u), ``jittered-antith
 (jittered points in the first half of the cells, their reflections through the centre
 of the square in the mirrored cells), and the point sets renderers use today: ``lhs``
 (Latin hypercube), ``cmj`` (Kensler's correlated multi-jitter), ``sobol`` and ``halton``
-(Owen-scrambled), ``lattice`` (a rank-1 lattice with a random shift).  Every pattern is
-randomised per technique and trial, so trials stay independent and each point is
+(Owen-scrambled), ``lattice`` (a rank-1 lattice with a random shift), whose exact
+variances are pair forms (``sum_variance``, analysis/point_sets) where they have one.
+Every pattern is randomised per technique and trial, so trials stay independent and each point is
 uniform on [0,1)² (every estimator stays unbiased).  Points are computed from their index
 alone, so a kernel needs no per-trial arrays.  What the rest of warpis knows about each pattern (its
 constraints on m, its independent blocks for the theory) is its entry in ``PATTERNS``
@@ -27,6 +28,9 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from ..analysis.point_sets.lattice import lattice_sum_variance
+from ..analysis.point_sets.lhs import lhs_sum_variance
+from ..analysis.point_sets.nets import halton_sum_variance, sobol_sum_variance
 from ..errors import WarpisError
 from ..vocabulary import (IID_SLOPE, SCRAMBLED_NET_SLOPE, STRATIFIED_SLOPE, Blocks, Pattern, Registry, Slope,
                           UserEntries, UserEntry, every_sample, grid_shape, grid_side)
@@ -61,22 +65,24 @@ PATTERNS: Registry[Pattern] = Registry("pattern", [
     Pattern(name="jittered-antithetic", code=3, description="jittered points in half the cells, reflected through "
                                                             "the centre into the mirrored cells",
             paired=True, strata=grid_side, blocks=_pairs_of_cells, slope=STRATIFIED_SLOPE),
-    # The point sets below have no block decomposition yet: their predictions say "no
-    # exact form" and reports show the measurement alone.  LHS keeps the rate of
+    # The point sets below are not independent blocks: their exact variances are pair
+    # forms (analysis/point_sets), except cmj's, whose correlated permutations have no
+    # simple pair law (its predictions say "no exact form").  LHS keeps the rate of
     # independent points (it removes the additive part of the variance, not its order).
     Pattern(name="lhs", code=4, description="Latin hypercube: one point in each of m columns and m rows, "
-                                            "randomly paired", strata=every_sample, slope=IID_SLOPE),
+                                            "randomly paired", strata=every_sample, slope=IID_SLOPE,
+            sum_variance=lhs_sum_variance),
     Pattern(name="cmj", code=5, description="correlated multi-jittered (Kensler 2013): jittered on the rows × cols "
                                             "grid and a Latin hypercube at once",
             strata=every_sample, slope=STRATIFIED_SLOPE),
     Pattern(name="sobol", code=6, description="Sobol' (0,2)-sequence, Owen-scrambled by hashing; a (0,m,2)-net "
                                               "when m is a power of two",
-            strata=every_sample, slope=SCRAMBLED_NET_SLOPE),
+            strata=every_sample, slope=SCRAMBLED_NET_SLOPE, sum_variance=sobol_sum_variance),
     Pattern(name="halton", code=7, description="Halton (bases 2 and 3), Owen-scrambled digit by digit",
-            strata=every_sample, slope=STRATIFIED_SLOPE),
+            strata=every_sample, slope=STRATIFIED_SLOPE, sum_variance=halton_sum_variance),
     Pattern(name="lattice", code=8, description="rank-1 lattice (i/m, i·g/m), g the integer nearest m/φ coprime "
                                                 "with m (Fibonacci), with a random Cranley–Patterson shift",
-            strata=every_sample, slope=STRATIFIED_SLOPE),
+            strata=every_sample, slope=STRATIFIED_SLOPE, sum_variance=lattice_sum_variance),
 ])
 
 
@@ -92,6 +98,7 @@ HALTON = wp.constant(PATTERNS["halton"].code)
 LATTICE = wp.constant(PATTERNS["lattice"].code)
 
 _BELOW_ONE = wp.constant(0.99999994)  # the largest float32 below 1
+SHUFFLE_ROUNDS = wp.constant(32)  # rounds of shuffle_index
 _TO_UNIT = wp.constant(1.0 / 16777216.0)
 _TOP_BIT = wp.constant(wp.uint32(0x80000000))
 _INV_GOLDEN = wp.constant(0.6180339887498949)  # 1/φ
@@ -171,6 +178,26 @@ def permute(i: wp.uint32, count: wp.uint32, p: wp.uint32) -> wp.uint32:
 
 
 @wp.func
+def shuffle_index(i: wp.uint32, count: wp.uint32, key: wp.uint32) -> wp.uint32:
+    """Element i of a pseudo-random permutation of 0..count−1 keyed by ``key``: the
+    swap-or-not shuffle (Hoang, Morris, Rogaway 2012).  Each round draws K and pairs x
+    with K − x (mod count); a hash of the round and the pair's larger member decides
+    whether the pair swaps, so every round is a permutation of any domain size, with no
+    cycle walking.  With ideal hashes the law of the images of two distinct points is
+    uniform over distinct pairs to 2e-8 relative after ``SHUFFLE_ROUNDS`` = 32 rounds for
+    every count up to 32 (docs/theory.md, "Exact variance of the point sets"), which is
+    the law the Latin hypercube's exact variance needs; Kensler's hash (``permute``) is
+    far from it (at count = 4 it deals 8 of the 24 permutations)."""
+    x = i
+    for r in range(SHUFFLE_ROUNDS):
+        k = chain(key, r) % count
+        partner = (k + count - x) % count
+        if chain(chain(key, -1 - r), wp.int32(wp.max(x, partner))) & wp.uint32(1) != wp.uint32(0):
+            x = partner
+    return x
+
+
+@wp.func
 def owen_scramble_base2(x: wp.uint32, seed: wp.uint32) -> wp.uint32:
     """Owen's nested uniform scramble of the 24 leading bits of x (a binary fraction):
     bit k is flipped by a hash of the seed and the k bits above it, so every point of a
@@ -247,9 +274,13 @@ def lattice_generator(m: wp.int32) -> wp.int32:
 
 @wp.func
 def lhs_point(s: wp.uint32, i: wp.int32, m: wp.int32) -> wp.vec2:
-    """Point i of a Latin hypercube: column and row from two random permutations of 0..m−1."""
+    """Point i of a Latin hypercube: column and row from two independent random
+    permutations of 0..m−1.  The cells the points occupy depend on the pairing of columns
+    with rows, whose law is that of the row permutation alone: it is the swap-or-not
+    shuffle, whose pair law is uniform (what the exact variance needs); the column
+    permutation only relabels points."""
     cx = permute(wp.uint32(i), wp.uint32(m), pattern_hash(s, 1))
-    cy = permute(wp.uint32(i), wp.uint32(m), pattern_hash(s, 2))
+    cy = shuffle_index(wp.uint32(i), wp.uint32(m), pattern_hash(s, 2))
     x = (float(cx) + uniform(s, i, 0)) / float(m)
     y = (float(cy) + uniform(s, i, 1)) / float(m)
     return wp.vec2(wp.min(x, _BELOW_ONE), wp.min(y, _BELOW_ONE))

@@ -58,7 +58,7 @@ OUTPUTS = ("convergence", "maps", "calibration")
 # a new form gets its column here; tests/test_vocabulary.py checks that none is missing).
 FORMS = ("exact", "eq1", "eq6", "eq7-printed", "eq7-exact", "eq8", "eq10-printed", "eq10-exact", "eq14-printed",
          "eq14-exact", "eq17", "eq19", "eq20", "power-exact", "mixture-exact", "antithetic-exact",
-         "jittered-antithetic-exact", "veach-bound")
+         "jittered-antithetic-exact", "veach-bound", "optimal-ab")
 BOUND_FORMS = BOUNDS
 Z_FORMS = tuple(f for f in FORMS if f not in BOUND_FORMS)
 HEADER = (["scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mean_stderr", "reference",

@@ -75,9 +75,9 @@ def _patterns(combiner: str) -> tuple[str, ...]:
     under = COMBINERS[combiner].verify_under
     if under is not None:
         return under
-    # Verify holds measurements against the theory: patterns without it (no blocks, so no
-    # exact form) have nothing to be held against, and are left to studies.
-    return tuple(name for name, entry in PATTERNS.items() if entry.blocks is not None)
+    # Verify holds measurements against the theory: patterns without it (neither blocks nor
+    # a pair form, so no exact form) have nothing to be held against, and are left to studies.
+    return tuple(name for name, entry in PATTERNS.items() if entry.blocks is not None or entry.sum_variance is not None)
 
 
 @dataclass
