@@ -98,7 +98,7 @@ HALTON = wp.constant(PATTERNS["halton"].code)
 LATTICE = wp.constant(PATTERNS["lattice"].code)
 
 _BELOW_ONE = wp.constant(0.99999994)  # the largest float32 below 1
-SHUFFLE_ROUNDS = wp.constant(32)  # rounds of shuffle_index
+SHUFFLE_ROUNDS = wp.constant(24)  # rounds of shuffle_index
 _TO_UNIT = wp.constant(1.0 / 16777216.0)
 _TOP_BIT = wp.constant(wp.uint32(0x80000000))
 _INV_GOLDEN = wp.constant(0.6180339887498949)  # 1/φ
@@ -184,15 +184,19 @@ def shuffle_index(i: wp.uint32, count: wp.uint32, key: wp.uint32) -> wp.uint32:
     with K − x (mod count); a hash of the round and the pair's larger member decides
     whether the pair swaps, so every round is a permutation of any domain size, with no
     cycle walking.  With ideal hashes the law of the images of two distinct points is
-    uniform over distinct pairs to 2e-8 relative after ``SHUFFLE_ROUNDS`` = 32 rounds for
-    every count up to 32 (docs/theory.md, "Exact variance of the point sets"), which is
-    the law the Latin hypercube's exact variance needs; Kensler's hash (``permute``) is
-    far from it (at count = 4 it deals 8 of the 24 permutations)."""
+    uniform over distinct pairs to 1.3e-5 relative after ``SHUFFLE_ROUNDS`` = 24 rounds
+    for every count up to 32 (docs/theory.md, "Exact variance of the point sets"), which
+    is the law the Latin hypercube's exact variance needs; Kensler's hash (``permute``)
+    is far from it (at count = 4 it deals 8 of the 24 permutations).  K is the round's
+    hash scaled to [0, count) by a multiply (no division), and K − x wraps by one add."""
     x = i
     for r in range(SHUFFLE_ROUNDS):
-        k = chain(key, r) % count
-        partner = (k + count - x) % count
-        if chain(chain(key, -1 - r), wp.int32(wp.max(x, partner))) & wp.uint32(1) != wp.uint32(0):
+        h = chain(key, r)
+        k = wp.uint32((wp.uint64(h) * wp.uint64(count)) >> wp.uint64(32))
+        partner = k - x
+        if k < x:
+            partner = k + (count - x)
+        if chain(h, wp.int32(wp.max(x, partner))) & wp.uint32(1) != wp.uint32(0):
             x = partner
     return x
 
