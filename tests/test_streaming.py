@@ -203,7 +203,11 @@ def test_ctrl_c_stops_an_estimate_within_seconds(threads):
     run off the main thread, so the interrupt is not lost in a finalizer."""
     cmd = [sys.executable, "-c", _DRIVER, "estimate", "occluded-quad", "--estimator", SPEC, "--n", "256",
            "--trials", "2000000", "--threads", threads]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # The child gets Ctrl-C's default disposition whatever the suite was started with: a
+    # shell starts a background job with SIGINT ignored, which a child inherits (and
+    # Python then installs no KeyboardInterrupt handler).
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         ready, _, _ = select.select([proc.stdout], [], [], 120)  # start-up, kernel cache load, first chunk
         assert ready and proc.stdout.readline() == "started\n", proc.stderr.read() if proc.poll() else "no start"
