@@ -272,3 +272,52 @@ def cli(capsys):
         return CliResult(status, captured.out, captured.err)
 
     return run
+
+
+def dome_scene(folder: Path, radiance: float) -> warpis.Scene:
+    """One upward receiver at the centre of a closed, inward-facing icosphere of uniform
+    ``radiance`` (radius 50, irradiance material): f = L cos θ, F = πL."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
+    sphere.invert()  # front faces inwards
+    sphere.export(folder / "dome.obj")
+    (folder / "scene.toml").write_text(
+        f'name = "dome"\n[[mesh]]\npath = "dome.obj"\nemission = {radiance}\n'
+        '[receivers]\npoints = [[0.0, 0.0, 0.0]]\nnormal = [0.0, 0.0, 1.0]\n[material]\ntype = "irradiance"\n')
+    return warpis.load_scene(folder / "scene.toml")
+
+
+# --------------------------------------------------------------------------- point-set forms
+# ``values`` callables for the pair forms of warpis.analysis.point_sets on closed-form ψ.
+
+BELOW_ONE = float(np.nextafter(np.float32(1.0), np.float32(0.0)))  # the largest float32 below 1
+
+
+def float32_points(u: np.ndarray) -> np.ndarray:
+    """The points as theory.py passes them on: within the call limit, inside [0,1)² before
+    and after the cast to float32."""
+    from warpis.analysis.point_sets import MAX_POINTS_PER_CALL
+
+    assert u.ndim == 2 and u.shape[1] == 2 and 0 < len(u) <= MAX_POINTS_PER_CALL
+    assert (u >= 0).all() and (u <= BELOW_ONE).all()
+    u = u.astype(np.float32).astype(np.float64)
+    assert (u < 1).all()
+    return u
+
+
+def one_technique(funcs, cast: bool = True):
+    """values(u) of one technique per receiver: receiver r's ψ is funcs[r] (``cast``: at
+    the float32 points the kernel would see)."""
+    def values(u):
+        u = float32_points(u) if cast else u
+        f = np.stack([fn(u[:, 0], u[:, 1]) for fn in funcs])
+        return f, f * f
+    return values
+
+
+def mixture(a, b):
+    """values(u) of a random pick between ψ = a and ψ = b (each with probability 1/2)."""
+    def values(u):
+        u = float32_points(u)
+        fa, fb = a(u[:, 0], u[:, 1]), b(u[:, 0], u[:, 1])
+        return ((fa + fb) / 2)[None], ((fa * fa + fb * fb) / 2)[None]
+    return values

@@ -32,7 +32,8 @@ import pytest
 import warp as wp
 from scipy.special import ndtri
 
-from warpis.analysis.point_sets import MAX_POINTS_PER_CALL
+from conftest import mixture, one_technique
+
 from warpis.analysis.point_sets.lattice import (lattice_generator, lattice_sum_variance, shortest_dual_sq,
                                                 union_generator)
 from warpis.analysis.point_sets.lhs import lhs_sum_variance
@@ -89,32 +90,6 @@ def fourier(h: tuple[int, int]):
 
 def integrands(pattern: str, m: int) -> tuple:
     return COMMON + ((fourier(dual_mode(m)),) if pattern == "lattice" else ())
-
-
-def float32_points(u: np.ndarray) -> np.ndarray:
-    """The points as the caller passes them on: cast to float32, every one inside [0,1)²."""
-    assert u.ndim == 2 and u.shape[1] == 2 and 0 < len(u) <= MAX_POINTS_PER_CALL
-    u = u.astype(np.float32).astype(np.float64)
-    assert (u >= 0).all() and (u < 1).all()
-    return u
-
-
-def one_technique(funcs, cast: bool = True):
-    """values(u) of one technique per receiver: receiver r's ψ is funcs[r]."""
-    def values(u):
-        u = float32_points(u) if cast else u
-        f = np.stack([fn(u[:, 0], u[:, 1]) for fn in funcs])
-        return f, f * f
-    return values
-
-
-def mixture(a, b):
-    """values(u) of a random pick between ψ = a and ψ = b (each with probability 1/2)."""
-    def values(u):
-        u = float32_points(u)
-        fa, fb = a(u[:, 0], u[:, 1]), b(u[:, 0], u[:, 1])
-        return ((fa + fb) / 2)[None], ((fa * fa + fb * fb) / 2)[None]
-    return values
 
 
 def predict(pattern: str, values, m: int, seed: int):

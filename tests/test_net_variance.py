@@ -40,8 +40,10 @@ import numpy as np
 import pytest
 from scipy.special import ndtri
 
+from conftest import mixture, one_technique
+
 from warpis.analysis.point_sets import MAX_POINTS_PER_CALL
-from warpis.analysis.point_sets.nets import (BELOW_ONE, gains, halton_sum_variance, pair_counts,
+from warpis.analysis.point_sets.nets import (gains, halton_sum_variance, pair_counts,
                                               sobol_sum_variance)
 from warpis.analysis.stats import sidak_threshold, variance_interval
 from warpis.kernels.patterns import pattern_points
@@ -82,33 +84,6 @@ Z = float(ndtri(1 - sidak_threshold(ALPHA, RUNS) / 2))
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def float32_points(u: np.ndarray) -> np.ndarray:
-    """The points as the caller passes them on: cast to float32, every one inside [0,1)²."""
-    assert u.ndim == 2 and u.shape[1] == 2 and 0 < len(u) <= MAX_POINTS_PER_CALL
-    assert (u >= 0).all() and (u <= BELOW_ONE).all()
-    u = u.astype(np.float32).astype(np.float64)
-    assert (u < 1).all()
-    return u
-
-
-def one_technique(funcs):
-    """values(u) of one technique per receiver: receiver r's ψ is funcs[r]."""
-    def values(u):
-        u = float32_points(u)
-        f = np.stack([fn(u[:, 0], u[:, 1]) for fn in funcs])
-        return f, f * f
-    return values
-
-
-def mixture(a, b):
-    """values(u) of a random pick between ψ = a and ψ = b (each with probability 1/2)."""
-    def values(u):
-        u = float32_points(u)
-        fa, fb = a(u[:, 0], u[:, 1]), b(u[:, 0], u[:, 1])
-        return ((fa + fb) / 2)[None], ((fa * fa + fb * fb) / 2)[None]
-    return values
 
 
 def digit(v: np.ndarray, base: int, j: int) -> np.ndarray:

@@ -28,8 +28,7 @@ import math
 
 import numpy as np
 import pytest
-import trimesh
-from conftest import one_error_line
+from conftest import dome_scene, one_error_line
 
 import warpis
 from warpis.analysis.stats import variance_interval
@@ -43,14 +42,7 @@ Z = 4.5
 @pytest.fixture(scope="module")
 def dome(tmp_path_factory):
     """A receiver at the centre of a closed inward-facing sphere of radiance L: f = L cos θ."""
-    d = tmp_path_factory.mktemp("dome")
-    sphere = trimesh.creation.icosphere(subdivisions=3, radius=50.0)
-    sphere.invert()
-    sphere.export(d / "dome.obj")
-    (d / "scene.toml").write_text(
-        f'name = "dome"\n[[mesh]]\npath = "dome.obj"\nemission = {L}\n'
-        '[receivers]\npoints = [[0.0, 0.0, 0.0]]\nnormal = [0.0, 0.0, 1.0]\n[material]\ntype = "irradiance"\n')
-    return warpis.load_scene(d / "scene.toml")
+    return dome_scene(tmp_path_factory.mktemp("dome"), L)
 
 
 @pytest.fixture(scope="module")

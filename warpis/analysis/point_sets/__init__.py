@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..stats import SampleMoments
+
 # (P, 2) points in [0,1)² → (E[ψ|u], E[ψ²|u]), each (R, P), at the R receivers being
 # predicted.  For a stream of one technique the second is the first squared; for the
 # mixture (a technique picked at random per sample) they are the means over techniques.
@@ -44,6 +46,19 @@ class SumVariance:
     value: np.ndarray  # (R,)
     stderr: np.ndarray  # (R,) standard error of ``value``
     points: int  # dense points evaluated per receiver
+
+
+def add_draws(moments: SampleMoments | None, draws: np.ndarray) -> SampleMoments:
+    """Running moments per receiver of i.i.d. draws (R, n) added chunk by chunk: the
+    engine's SampleMoments and its pairwise merge, so a small spread around a large mean
+    keeps its digits."""
+    part = SampleMoments.of(draws)
+    return part if moments is None else moments.merge(part)
+
+
+def mean_variance(moments: SampleMoments) -> np.ndarray:
+    """The squared standard error of the mean of the draws, per receiver."""
+    return moments.m2 / (moments.count - 1) / moments.count
 
 
 # (values, m, points, rng) → SumVariance: ``points`` is the budget of dense points per

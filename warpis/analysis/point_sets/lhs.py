@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import MAX_POINTS_PER_CALL, SumVariance, Values
+from . import MAX_POINTS_PER_CALL, SumVariance, Values, add_draws, mean_variance
 
 BELOW_ONE = float(np.nextafter(np.float32(1.0), np.float32(0.0)))  # the largest float32 below 1
 POINTS_PER_REPLICA = 5
@@ -45,13 +45,14 @@ def lhs_sum_variance(values: Values, m: int, points: int, rng: np.random.Generat
         raise ValueError(f"m must be >= 1, got {m}")
     replicas = max(MIN_REPLICAS, points // POINTS_PER_REPLICA)
     per_call = MAX_POINTS_PER_CALL // POINTS_PER_REPLICA
-    moments = _Moments()
+    moments = None
     done = 0
     while done < replicas:
         count = min(per_call, replicas - done)
-        moments.add(_replica_terms(values, m, _replica_points(m, count, rng)))
+        moments = add_draws(moments, _replica_terms(values, m, _replica_points(m, count, rng)))
         done += count
-    return SumVariance(moments.mean, moments.stderr(), replicas * POINTS_PER_REPLICA)
+    assert moments is not None
+    return SumVariance(moments.mean, np.sqrt(mean_variance(moments)), replicas * POINTS_PER_REPLICA)
 
 
 def _replica_points(m: int, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -79,29 +80,3 @@ def _replica_terms(values: Values, m: int, u: np.ndarray) -> np.ndarray:
         return w + k  # the four points are i.i.d. uniform: k estimates Var f
     d = 0.5 * (f11 - f11b) ** 2
     return m * w + m / (m - 1) * (m * k - d)
-
-
-class _Moments:
-    """Mean and sample variance of i.i.d. terms added in chunks (Chan's merge: no
-    subtraction of large sums, so a small spread around a large mean keeps its digits)."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.mean: np.ndarray = np.zeros(0)
-        self.m2: np.ndarray = np.zeros(0)
-
-    def add(self, t: np.ndarray) -> None:
-        n = t.shape[1]
-        mean = t.mean(axis=1)
-        m2 = ((t - mean[:, None]) ** 2).sum(axis=1)
-        if self.count == 0:
-            self.count, self.mean, self.m2 = n, mean, m2
-            return
-        total = self.count + n
-        delta = mean - self.mean
-        self.mean = self.mean + delta * (n / total)
-        self.m2 = self.m2 + m2 + delta * delta * (self.count * n / total)
-        self.count = total
-
-    def stderr(self) -> np.ndarray:
-        return np.sqrt(self.m2 / (self.count - 1) / self.count)

@@ -54,7 +54,7 @@ import math
 
 import numpy as np
 
-from . import MAX_POINTS_PER_CALL, SumVariance, Values
+from . import MAX_POINTS_PER_CALL, SumVariance, Values, add_draws, mean_variance
 
 BELOW_ONE = float(np.nextafter(np.float32(1.0), np.float32(0.0)))  # the largest float32 below 1
 BITS = 24  # base-2 digits the kernel scrambles: its points lie on the 2^-BITS grid
@@ -275,31 +275,6 @@ def _allocate(terms: tuple[_Term, ...], points: int) -> list[int]:
     return [max(MIN_DRAWS, int((even + 0.5 * points * w / total * t.size) / t.size)) for w, t in zip(weight, terms)]
 
 
-class _Moments:
-    """Mean and sample variance of i.i.d. terms added in chunks (Chan's merge)."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.mean: np.ndarray = np.zeros(0)
-        self.m2: np.ndarray = np.zeros(0)
-
-    def add(self, t: np.ndarray) -> None:
-        n, mean = t.shape[1], t.mean(axis=1)
-        m2 = ((t - mean[:, None]) ** 2).sum(axis=1)
-        if self.count == 0:
-            self.count, self.mean, self.m2 = n, mean, m2
-            return
-        total = self.count + n
-        delta = mean - self.mean
-        self.mean = self.mean + delta * (n / total)
-        self.m2 = self.m2 + m2 + delta * delta * (self.count * n / total)
-        self.count = total
-
-    def mean_variance(self) -> np.ndarray:
-        """The squared standard error of the mean."""
-        return self.m2 / (self.count - 1) / self.count
-
-
 def _calls(sizes: list[int], draws: list[int]) -> list[list[tuple[int, int, int]]]:
     """Pack (term, first draw, end draw) pieces into calls of at most MAX_POINTS_PER_CALL
     points, a draw never split between calls (few calls for many small terms)."""
@@ -324,7 +299,7 @@ def _net_sum_variance(pattern: str, values: Values, m: int, points: int, rng: np
     terms = _terms(pattern, m)
     draws = _allocate(terms, points)
     grids = [t.points(n, rng) for t, n in zip(terms, draws)]  # every point from rng, in a fixed order
-    moments = [_Moments() for _ in terms]
+    moments: list = [None] * len(terms)
     for call in _calls([t.size for t in terms], draws):
         u = np.concatenate([grids[t][lo:hi].reshape(-1, 2) for t, lo, hi in call])
         first, second = (np.asarray(v, np.float64) for v in values(u))
@@ -332,11 +307,11 @@ def _net_sum_variance(pattern: str, values: Values, m: int, points: int, rng: np
         for t, lo, hi in call:
             stop = start + (hi - lo) * terms[t].size
             shape = (first.shape[0], hi - lo, terms[t].size)
-            moments[t].add(terms[t].estimates(first[:, start:stop].reshape(shape),
-                                              second[:, start:stop].reshape(shape)))
+            moments[t] = add_draws(moments[t], terms[t].estimates(first[:, start:stop].reshape(shape),
+                                                                  second[:, start:stop].reshape(shape)))
             start = stop
     value = m * sum(t.coef * mo.mean for t, mo in zip(terms, moments))
-    var = m * m * sum(t.coef**2 * mo.mean_variance() for t, mo in zip(terms, moments))
+    var = m * m * sum(t.coef**2 * mean_variance(mo) for t, mo in zip(terms, moments))
     used = sum(n * t.size for t, n in zip(terms, draws))
     return SumVariance(np.asarray(value, np.float64), np.sqrt(var), used)
 
