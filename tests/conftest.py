@@ -15,11 +15,15 @@ output; ``run_warpis`` runs the command in a fresh Python process.
 
 from __future__ import annotations
 
+import atexit
 import json
 import math
+import os
 import re
+import shutil
 import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +33,11 @@ import pytest
 import trimesh
 
 import warpis
+
+# warpis keeps built BVHs on disk (warpis/kernels/bvh.py): this run, and the warpis
+# processes it starts, use a folder of their own, removed at exit.
+os.environ["WARPIS_CACHE_DIR"] = tempfile.mkdtemp(prefix="warpis-test-cache-")
+atexit.register(shutil.rmtree, os.environ["WARPIS_CACHE_DIR"], True)
 
 BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")  # TOML scenes
 # Mitsuba XML scenes (need the mitsuba extra; tests/test_mitsuba_scene.py and test_against_mitsuba.py)

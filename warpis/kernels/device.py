@@ -27,6 +27,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import WarpisError
+from .bvh import WideBvh, cached_wide_bvh, upload_wide_bvh
 
 if TYPE_CHECKING:
     from ..scenes import Scene
@@ -49,17 +50,25 @@ class SceneData:
     """Everything a kernel needs to cast rays and sample the emitters of a scene."""
 
     mesh: wp.uint64  # every triangle: emitters occlude too
+    bvh: WideBvh  # the same triangles in a 4-wide BVH: the CPU's ray query (bvh.py)
     emitter_bvh: wp.uint64  # bounds of the emitter triangles, for light-sampling pdfs
     points: wp.array(dtype=wp.vec3)
     indices: wp.array(dtype=wp.int32)  # 3 per triangle, into points
     tri_emission: wp.array(dtype=wp.float32)  # radiance of each triangle's front face
     emitter_tri: wp.array(dtype=wp.int32)  # emitter k → triangle index in `mesh`
     emitter_area: wp.array(dtype=wp.float32)
+    emitter_normal: wp.array(dtype=wp.vec3)  # unit normal of each emitter triangle's front face
+    emitter_slab: wp.array(dtype=wp.float32)  # self-hit slab height anywhere on it (integrand.py)
+    emitter_lower: wp.vec3  # bounds of all emitter triangles, widened as the emitter BVH's boxes
+    emitter_upper: wp.vec3
     area_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1
     power_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1 (radiance × area)
     total_area: wp.float32
     total_power: wp.float32  # Σ radiance × area
     emitter_count: wp.int32
+    # 1 when every emitter triangle lies in one plane facing one way: a ray then crosses
+    # the emitters at most once, so a light sample's own point is its only crossing.
+    planar_emitters: wp.int32
     # roughplastic's precomputed transmittance (and internal reflectance) per distinct
     # (distribution, alpha, eta) of the receivers: microfacet.plastic_table rows.
     plastic_table: wp.array2d(dtype=wp.float32)
@@ -187,6 +196,22 @@ def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.a
     slab[r] = scale * SELF_HIT_SLAB
 
 
+def planar_emitters(corners: np.ndarray) -> bool:
+    """Whether the emitter triangles ``corners`` (E, 3, 3) lie in one plane and face one
+    way (to float32 rounding): then a ray crosses them at most once (where it crosses the
+    plane), and the light pdf of a sampled point is that point's own density."""
+    c = np.asarray(corners, dtype=np.float64)
+    normals = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])
+    lengths = np.linalg.norm(normals, axis=1)
+    if len(c) == 0 or not np.all(lengths > 0):
+        return False
+    unit = normals / lengths[:, None]
+    axis = unit[np.argmax(lengths)]
+    scale = float(np.abs(c).max())
+    offsets = (c - c[np.argmax(lengths), 0]) @ axis
+    return bool(np.all(unit @ axis > 0.0) and np.all(np.abs(offsets) <= 1e-6 * scale))
+
+
 def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """float32 bounds of emitter triangles, widened by a little of each triangle's own
     size and magnitude: flat (axis-aligned) triangles get boxes of non-zero width, and a
@@ -223,19 +248,34 @@ def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, 
     mesh = wp.Mesh(points=points, indices=indices)
     lower, upper = _emitter_boxes(scene.triangle_vertices(scene.emitters))
     emitter_bvh = wp.Bvh(wp.array(lower, dtype=wp.vec3), wp.array(upper, dtype=wp.vec3))
+    lower_all, upper_all = (lower.min(axis=0), upper.max(axis=0)) if len(lower) else (np.zeros(3), np.zeros(3))
     d = SceneData()
     d.mesh = mesh.id
+    on_cpu = wp.get_device().is_cpu
+    # The CPU's ray queries walk warpis's 4-wide BVH; CUDA keeps Warp's own (bvh.py).
+    d.bvh = upload_wide_bvh(cached_wide_bvh(scene.vertices, scene.triangles, scene.emitters) if on_cpu else None)
     d.emitter_bvh = emitter_bvh.id
     d.points = points
     d.indices = indices
     d.tri_emission = wp.array(scene.emission.astype(np.float32), dtype=wp.float32)
     d.emitter_tri = wp.array(scene.emitters, dtype=wp.int32)
     d.emitter_area = wp.array(scene.emitter_areas.astype(np.float32), dtype=wp.float32)
+    corners = scene.triangle_vertices(scene.emitters).astype(np.float32).astype(np.float64)
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    d.emitter_normal = wp.array(normals.astype(np.float32), dtype=wp.vec3)
+    # A point of the triangle is a convex combination of its corners: no coordinate of it
+    # exceeds the corners' largest magnitude, so the slab of that magnitude holds anywhere.
+    d.emitter_slab = wp.array((np.abs(corners).max(axis=(1, 2)) * SELF_HIT_SLAB).astype(np.float32),
+                              dtype=wp.float32)
     d.area_cdf = wp.array(_cdf(scene.emitter_areas), dtype=wp.float32)
     d.power_cdf = wp.array(_cdf(scene.emitter_areas * scene.emitter_radiance), dtype=wp.float32)
     d.total_area = float(scene.total_emitter_area)
     d.total_power = float(scene.total_power)
     d.emitter_count = int(scene.emitter_count)
+    d.emitter_lower = wp.vec3(*lower_all.astype(np.float32))
+    d.emitter_upper = wp.vec3(*upper_all.astype(np.float32))
+    d.planar_emitters = int(planar_emitters(scene.triangle_vertices(scene.emitters)))
     d.plastic_table = wp.array(plastic_table, dtype=wp.float32)
     return d, mesh, emitter_bvh
 

@@ -49,10 +49,11 @@ from .. import limits
 from ..errors import WarpisError
 from ..vocabulary import Combiner, Parameter, Pattern, Registry, WeightContext, grid_shape
 from .device import ReceiverData, SceneData
-from .integrand import ShadingPoint, integrand, shading_point
+from .integrand import ShadingPoint, integrand_via, shading_point
 from .patterns import PATTERNS, pattern_point, point_dispatch, user_patterns
 from .rng import stream, uniform
-from .techniques import TECHNIQUES, LightTable, dispatch, sample_direction, technique_pdf, user_techniques
+from .techniques import (LIGHT_AREA, LIGHT_POWER, TECHNIQUES, DirectionSample, LightTable, dispatch, sample_direction,
+                         sample_light_point, technique_pdf, unknown_sample, user_techniques)
 
 
 def _importance_weights(k: int, f: np.ndarray, pdf: np.ndarray, ctx: WeightContext) -> np.ndarray:
@@ -334,23 +335,33 @@ class KernelArgs:
 # --------------------------------------------------------------------------- kernel
 
 
-@wp.func
-def contribution(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
-    """f(ω) for a sampled direction; 0 for a failed sample (zero vector).
-
-    The trial kernels evaluate pdfs only where f > 0: a zero-valued sample adds nothing
-    whatever its pdf, and for light techniques the pdf is a BVH traversal.
-    """
-    if wp.length_sq(w) == 0.0:
-        return 0.0
-    return integrand(scene, sp, w)
-
-
 def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point: Any, module: Any) -> Any:
     """The trial kernel over the technique dispatch ``sample_direction``/``technique_pdf``
     and the pattern dispatch ``pattern_point`` (the built-in functions, or those of
     :func:`warpis.kernels.techniques.dispatch` and :func:`warpis.kernels.patterns.point_dispatch`
     for user techniques and patterns)."""
+
+    @wp.func(module=module)
+    def draw(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2) -> DirectionSample:
+        """Technique ``tech``'s sample for u, with its pdf and its emitter crossing where
+        the technique knows them (a light point on a planar emitter set)."""
+        if scene.planar_emitters != 0 and (tech == LIGHT_AREA or tech == LIGHT_POWER):
+            return sample_light_point(tech, scene, sp, u)
+        return unknown_sample(sample_direction(tech, scene, table, sp, u))
+
+    @wp.func(module=module)
+    def value(scene: SceneData, sp: ShadingPoint, smp: DirectionSample) -> float:
+        """f at the sample; 0 for a failed sample (zero vector)."""
+        if wp.length_sq(smp.w) == 0.0:
+            return 0.0
+        return integrand_via(scene, sp, smp.w, smp.emitter, smp.t)
+
+    @wp.func(module=module)
+    def own_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, smp: DirectionSample) -> float:
+        """The sampling technique's density at the sample."""
+        if smp.pdf >= 0.0:
+            return smp.pdf
+        return technique_pdf(tech, scene, table, sp, smp.w)
 
     @wp.func(module=module)
     def other_pdfs(techs: wp.array(dtype=wp.int32), k: wp.int32, pdf_k: float, scene: SceneData, table: LightTable,
@@ -416,15 +427,15 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
         sample fails, r = e_k (technique k's own point of the extended domain) and f = 0."""
         t = vec5d()
         t[k] = wp.float64(1.0)
-        w = sample_direction(techs[k], scene, table, sp, u)
-        if wp.length_sq(w) > 0.0:
-            pdf = technique_pdf(techs[k], scene, table, sp, w)
+        smp = draw(techs[k], scene, table, sp, u)
+        if wp.length_sq(smp.w) > 0.0:
+            pdf = own_pdf(techs[k], scene, table, sp, smp)
             if pdf > 0.0:
-                g = pdf_vector(techs, k, pdf, scene, table, sp, w)
+                g = pdf_vector(techs, k, pdf, scene, table, sp, smp.w)
                 total = g[0] + g[1] + g[2] + g[3]
                 for j in range(4):
                     t[j] = g[j] / total
-                t[4] = wp.float64(integrand(scene, sp, w)) / total
+                t[4] = wp.float64(value(scene, sp, smp)) / total
         return t
 
     @wp.func(module=module)
@@ -487,10 +498,11 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
         for i in range(n):
             u = pattern_point(pattern, s, i, n, rows, cols)
             k = wp.min(wp.int32(uniform(s_pick, i, 0) * float(n_g)), n_g - 1)
-            w = sample_direction(techs[k], scene, table, sp, u)
-            f = contribution(scene, sp, w)
+            smp = draw(techs[k], scene, table, sp, u)
+            w = smp.w
+            f = value(scene, sp, smp)
             if f > 0.0:
-                pdf = technique_pdf(techs[k], scene, table, sp, w)
+                pdf = own_pdf(techs[k], scene, table, sp, smp)
                 if pdf > 0.0:
                     gbar = other_pdfs(techs, k, pdf, scene, table, sp, w, 1) / float(n_g)
                     total = total + wp.float64(f / gbar)
@@ -507,13 +519,14 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
             s = stream(seed, sp.receiver, trial, k)
             for i in range(m):
                 u = pattern_point(pattern, s, i, m, rows, cols)
-                w = sample_direction(techs[k], scene, table, sp, u)
-                f = contribution(scene, sp, w)
+                smp = draw(techs[k], scene, table, sp, u)
+                w = smp.w
+                f = value(scene, sp, smp)
                 if f > 0.0:
                     if combiner == BIASED:
                         total = total + wp.float64(f)
                     else:
-                        pdf = technique_pdf(techs[k], scene, table, sp, w)
+                        pdf = own_pdf(techs[k], scene, table, sp, smp)
                         if pdf > 0.0:
                             if combiner == SINGLE:
                                 total = total + wp.float64(f / pdf)

@@ -7,14 +7,25 @@ emission, which is also how visibility V enters), and ρ is 1 (irradiance), albe
 the mirror direction of the view, or one of Mitsuba 3's microfacet BSDFs (roughconductor,
 roughplastic; :mod:`.microfacet`) divided by its cosine factor.
 
-Ray origin: warpis integrates F at the receiver x itself.  Sampling, pdfs and f all
-refer to directions from x.  Receivers sit exactly on their surface, and Warp's mesh
-query accepts hits at t ≥ 0 with no t_min, so a ray from x could hit the surface it
-starts on.  The ray along ω therefore starts at x + (δ / n·ω)·ω: the same ray, with the
-part below height δ over the receiver's tangent plane skipped, δ = the receiver's
-self-hit slab (``SELF_HIT_SLAB`` × the float32 magnitude of the coordinates around x,
-see device.py).  Nothing depends on the scene's size: scaling a scene, or adding a huge
-floor far away, leaves F unchanged.  Only geometry inside that slab is ignored, which
+How a value is found: only emitters have Le > 0, so the first triangle the ray hits
+matters only if it is an emitter, and then it is the nearest emitter the ray crosses.
+f therefore takes the nearest crossing with an emitter triangle (a loop over them, or
+their own small BVH: :mod:`.emitters`), and f = 0 at once when there is none or it is a
+back face; else one shadow ray, an any-hit query (:mod:`.bvh`) over the segment up to
+that crossing, says whether anything blocks it.  Most BSDF samples miss every emitter
+and cast no ray at all; a light sample on a planar emitter set knows its crossing (the
+point it sampled) and casts only the shadow ray.
+
+Ray ends: warpis integrates F at the receiver x itself.  Sampling, pdfs and f all
+refer to directions from x.  Receivers sit exactly on their surface, and a ray from x
+could hit the surface it starts on, so the segment starts at x + (δ / n·ω)·ω: the same
+ray, with the part below height δ over the receiver's tangent plane skipped, δ = the
+receiver's self-hit slab (``SELF_HIT_SLAB`` × the float32 magnitude of the coordinates
+around x, see device.py).  Emitter crossings within that slab are not seen either.  At
+the other end the segment stops where it enters the emitter's own slab (δ_y / |cos θ_y|
+before the crossing y, δ_y from the magnitudes around y), so the emitter cannot block
+its own light.  Nothing depends on the scene's size: scaling a scene, or adding a huge
+floor far away, leaves F unchanged.  Only geometry inside those slabs is ignored, which
 changes F by a second-order amount (docs/theory.md, "The integrand at a receiver").
 """
 
@@ -26,7 +37,9 @@ import numpy as np
 import warp as wp
 
 from ..vocabulary import Material, Registry
+from .bvh import any_hit, closest_hit
 from .device import ReceiverData, SceneData, upload
+from .emitters import nearest_emitter
 from .microfacet import conductor_brdf, plastic_brdf
 from .shading import ShadingPoint, with_frame
 from .warps import INV_2PI, INV_PI
@@ -132,37 +145,98 @@ def brdf(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
 
 
 @wp.func
+def radiance_unless_blocked(scene: SceneData, p: wp.vec3, w: wp.vec3, lead: float, k: wp.int32, t: float) -> float:
+    """Le of emitter triangle k, which the ray (p, ω) crosses at distance t before any other
+    emitter, unless another triangle blocks the way: one shadow ray (an any-hit query)
+    from where the ray leaves the receiver's slab (``lead``) to where it enters the
+    emitter's own slab (see the module docstring)."""
+    cos_y = wp.abs(wp.dot(scene.emitter_normal[k], w))
+    tail = scene.emitter_slab[k] / wp.max(cos_y, 1.0e-12)
+    length = t - lead - tail
+    if length > 0.0 and any_hit(scene.bvh, scene.mesh, p + lead * w, w, length):
+        return 0.0
+    return scene.tri_emission[scene.emitter_tri[k]]
+
+
+@wp.func
+def radiance_beyond(scene: SceneData, p: wp.vec3, w: wp.vec3, lead: float) -> float:
+    """Le of the first surface the ray (p, ω) hits beyond distance ``lead``: the front-face
+    radiance of the nearest emitter it crosses there, unless something blocks the way;
+    0 when it crosses no emitter or the nearest one's back face (emission is one-sided)."""
+    hit = nearest_emitter(scene, p, w, lead)
+    if hit.k < 0 or hit.front == 0:
+        return 0.0
+    return radiance_unless_blocked(scene, p, w, lead, hit.k, hit.t)
+
+
+@wp.func
 def incident_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
-    """Le of the first surface the ray (p, ω) hits: its front-face radiance, else 0."""
-    q = wp.mesh_query_ray(scene.mesh, p, w, FAR)
-    if not q.result:
+    """Le of the first surface the ray (p, ω) hits: its front-face radiance, else 0.
+
+    On a planar emitter set the nearest emitter crossing and a shadow ray answer (most
+    directions cross no emitter and cast no ray); elsewhere one closest-hit query, which
+    for sphere lights and emitters in several planes costs less than finding the nearest
+    crossing among many emitter triangles first."""
+    if scene.planar_emitters != 0:
+        return radiance_beyond(scene, p, w, 0.0)
+    return closest_radiance(scene, p, w)
+
+
+@wp.func
+def closest_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
+    """Le of the first surface the ray (p, ω) hits, from one closest-hit query."""
+    hit = closest_hit(scene.bvh, scene.mesh, p, w, FAR)
+    if hit.face < 0 or hit.sign <= 0.0:  # a miss, or a back face: emission is one-sided
         return 0.0
-    if q.sign <= 0.0:  # back face: emission is one-sided
+    return scene.tri_emission[hit.face]
+
+
+@wp.func
+def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int32, known_t: float) -> float:
+    """f(ω) = Le(ω) · ρ(ω) · max(0, n·ω), where the ray from the receiver is known to cross
+    emitter triangle ``known`` at distance ``known_t`` before any other emitter (a light
+    sample on a planar emitter set), or ``known`` = −1: the nearest emitter crossing is
+    looked up.  One shadow ray at most, and none when the ray crosses no emitter."""
+    cos_n = wp.dot(sp.n, w)
+    if cos_n <= 0.0:
         return 0.0
-    return scene.tri_emission[q.face]
+    # Geometry within the receiver's slab is not seen (see the module docstring).
+    lead = sp.slab / cos_n
+    microfacet = sp.material == ROUGHCONDUCTOR or sp.material == ROUGHPLASTIC
+    rho = float(1.0)
+    if not microfacet:
+        # Phong's ρ is cheap and often 0 (outside its lobe): it goes first and saves the ray.
+        rho = brdf(scene, sp, w)
+        if rho == 0.0:
+            return 0.0
+    # One call site per query: each is inlined wherever f is, and the trial kernel has f
+    # in several places.
+    le = float(0.0)
+    if known < 0 and scene.planar_emitters == 0:
+        le = closest_radiance(scene, sp.p + lead * w, w)
+    else:
+        k = known
+        t = known_t
+        if k < 0:
+            hit = nearest_emitter(scene, sp.p, w, lead)
+            k = hit.k
+            t = hit.t
+        # Light arrives from the front face of an emitter beyond the slab: one-sided emission.
+        if k >= 0 and t > lead and wp.dot(scene.emitter_normal[k], w) < 0.0:
+            le = radiance_unless_blocked(scene, sp.p, w, lead, k, t)
+    if le == 0.0:
+        return 0.0
+    if microfacet:
+        # A microfacet ρ costs more than finding the emitter and casting the shadow ray,
+        # and most of its own samples see no emitter: it comes last.
+        rho = brdf(scene, sp, w)
+    return le * rho * cos_n
 
 
 @wp.func
 def integrand(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
-    """f(ω) = Le(ω) · ρ(ω) · max(0, n·ω) at the shading point (one shadow ray)."""
-    cos_n = wp.dot(sp.n, w)
-    if cos_n <= 0.0:
-        return 0.0
-    # Start the ray where it leaves the self-hit slab: the same ray from x, so no
-    # direction, pdf or solid angle moves (see the module docstring).
-    origin = sp.p + w * (sp.slab / cos_n)
-    if sp.material == ROUGHCONDUCTOR or sp.material == ROUGHPLASTIC:
-        # A microfacet ρ costs more than the ray, and most of its own samples see no
-        # emitter: cast first, evaluate ρ only where light arrives.
-        le = incident_radiance(scene, origin, w)
-        if le == 0.0:
-            return 0.0
-        return le * brdf(scene, sp, w) * cos_n
-    # Phong's ρ is cheap and often 0 (outside its lobe): it goes first and saves the ray.
-    rho = brdf(scene, sp, w)
-    if rho == 0.0:
-        return 0.0
-    return incident_radiance(scene, origin, w) * rho * cos_n
+    """f(ω) = Le(ω) · ρ(ω) · max(0, n·ω) at the shading point."""
+    return integrand_via(scene, sp, w, -1, 0.0)
 
 
 @wp.kernel

@@ -49,6 +49,8 @@ import warp as wp
 
 from ..vocabulary import Registry, Technique, UserEntries, UserEntry
 from .device import DeviceScene, ReceiverData, SceneData, upload
+from .emitters import (CROSSING_TOLERANCE, FEW_EMITTERS, emitter_corner, emitter_corner64, emitter_faces, meets_box,
+                       ray_triangle)
 from .integrand import PHONG as PHONG_MATERIAL
 from .integrand import ROUGHCONDUCTOR, ROUGHPLASTIC, ShadingPoint, shading_point
 from .microfacet import conductor_pdf, conductor_sample, plastic_pdf, plastic_sample
@@ -114,27 +116,6 @@ class LightTable:
 
 
 @wp.func
-def emitter_corner(scene: SceneData, k: wp.int32, c: wp.int32) -> wp.vec3:
-    """Corner ``c`` of emitter triangle ``k``."""
-    t = scene.emitter_tri[k]
-    return scene.points[scene.indices[3 * t + c]]
-
-
-@wp.func
-def emitter_corner64(scene: SceneData, k: wp.int32, c: wp.int32) -> wp.vec3d:
-    v = emitter_corner(scene, k, c)
-    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
-
-
-@wp.func
-def emitter_faces(scene: SceneData, k: wp.int32, p: wp.vec3) -> bool:
-    """Whether the front face of emitter triangle ``k`` faces point ``p``."""
-    a = emitter_corner(scene, k, 0)
-    nrm = wp.cross(emitter_corner(scene, k, 1) - a, emitter_corner(scene, k, 2) - a)
-    return wp.dot(nrm, p - a) > 0.0
-
-
-@wp.func
 def search_cdf(cdf: wp.array(dtype=wp.float32), count: wp.int32, x: float) -> wp.int32:
     """The interval k with cdf[k] ≤ x < cdf[k+1] (cdf has count + 1 entries)."""
     lo = wp.int32(0)
@@ -167,96 +148,145 @@ def rescale(x: float, lo: float, hi: float) -> float:
     return wp.clamp((x - lo) / wp.max(hi - lo, 1.0e-30), 0.0, 0.99999994)
 
 
-EDGE_SLACK = wp.constant(1.0e-6)
-# Two emitter crossings of one ray closer than this fraction of their distance are one
-# crossing seen through two triangles (a shared edge): relative, so no scene size enters.
-CROSSING_TOLERANCE = wp.constant(1.0e-5)
+@wp.struct
+class CrossingSum:
+    """A light pdf being summed over a ray's emitter crossings."""
+
+    pdf: float
+    seen: Crossings  # distances of the crossings counted, negated for back-facing ones
+    count: wp.int32
 
 
 @wp.func
-def to64(v: wp.vec3) -> wp.vec3d:
-    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+def add_crossing(acc: CrossingSum, tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint,
+                 w: wp.vec3, k: wp.int32) -> CrossingSum:
+    """``acc`` plus emitter triangle k's density at ω, if the ray crosses it at a point
+    not already counted."""
+    a = emitter_corner(scene, k, 0)
+    b = emitter_corner(scene, k, 1)
+    c = emitter_corner(scene, k, 2)
+    t = ray_triangle(sp.p, w, a, b, c)
+    if t <= 0.0:
+        return acc
+    nrm = wp.cross(b - a, c - a)
+    front = wp.dot(nrm, w) < 0.0
+    signed = wp.where(front, t, -t)
+    for i in range(acc.count):
+        if wp.abs(acc.seen[i] - signed) <= CROSSING_TOLERANCE * t:
+            return acc
+    out = acc
+    if out.count < MAX_CROSSINGS:
+        out.seen[out.count] = signed
+        out.count += 1
+    radiance = scene.tri_emission[scene.emitter_tri[k]]
+    if tech == LIGHT_SOLID_ANGLE:
+        # Only triangles whose front faces the receiver can be chosen.
+        if front and table.total[sp.receiver] > wp.float64(0.0):
+            out.pdf = out.pdf + radiance / float(table.total[sp.receiver])
+    else:
+        out.pdf = out.pdf + area_to_solid_angle(light_density(tech, scene, radiance), t, nrm, w)
+    return out
 
 
 @wp.func
-def ray_triangle(o: wp.vec3, w: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> float:
-    """Distance t > 0 at which the ray (o, ω) crosses triangle abc, or −1 (Möller–Trumbore).
+def light_density(tech: wp.int32, scene: SceneData, radiance: float) -> float:
+    """Area density of light-area (1/A) or light-power (L_k/P) on a triangle of radiance L_k."""
+    if tech == LIGHT_POWER:
+        return radiance / scene.total_power
+    return 1.0 / scene.total_area
 
-    In float64: for a small emitter triangle seen from afar at a grazing angle, float32
-    Möller–Trumbore misplaces the crossing by 1e-3 of the triangle (its determinant is
-    tiny) and loses crossings of directions the light technique itself produced, which
-    then report pdf 0.  Edges are still widened by ``EDGE_SLACK`` in barycentric terms
-    (the test is not watertight); the duplicate a widened edge can cause is removed by
-    ``light_pdf``.
-    """
-    o64 = to64(o)
-    w64 = to64(w)
-    a64 = to64(a)
-    e1 = to64(b) - a64
-    e2 = to64(c) - a64
-    pv = wp.cross(w64, e2)
-    det = wp.dot(e1, pv)
-    if det == wp.float64(0.0):
-        return -1.0
-    inv = wp.float64(1.0) / det
-    tv = o64 - a64
-    bu = wp.dot(tv, pv) * inv
-    slack = wp.float64(EDGE_SLACK)
-    if bu < -slack or bu > wp.float64(1.0) + slack:
-        return -1.0
-    qv = wp.cross(tv, e1)
-    bv = wp.dot(w64, qv) * inv
-    if bv < -slack or bu + bv > wp.float64(1.0) + slack:
-        return -1.0
-    t = float(wp.dot(e2, qv) * inv)
-    return wp.where(t > 0.0, t, -1.0)
+
+@wp.func
+def area_to_solid_angle(density: float, t: float, nrm: wp.vec3, w: wp.vec3) -> float:
+    """An area density at distance t on a surface of (unnormalised) normal nrm, per unit
+    solid angle about ω."""
+    cos_y = wp.max(wp.abs(wp.dot(wp.normalize(nrm), w)), 1.0e-12)
+    return density * t * t / cos_y
 
 
 @wp.func
 def light_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, w: wp.vec3) -> float:
     """Solid-angle density of a light technique at ω: a sum over every emitter crossing.
 
-    One traversal of the emitter triangles' BVH visits each triangle whose box the ray
-    meets; each one the ray actually crosses adds its density.  Crossings within
+    Every emitter triangle the ray crosses adds its density: a loop over all of them when
+    there are few, else one traversal of the emitter triangles' BVH.  Crossings within
     ``CROSSING_TOLERANCE`` × t of one already counted *through a face of the same
     facing* are the same crossing (a ray through an edge shared by two triangles meets
     both at one point) and add nothing.  The facing matters: at a sphere light's
     silhouette the ray enters through a front face and leaves through a back face at
     almost the same t, two crossings that both count.
     """
-    pdf = float(0.0)
+    acc = CrossingSum()
+    acc.pdf = 0.0
+    acc.count = 0
+    if scene.emitter_count <= FEW_EMITTERS:
+        if meets_box(scene.emitter_lower, scene.emitter_upper, sp.p, w):
+            for k in range(scene.emitter_count):
+                acc = add_crossing(acc, tech, scene, table, sp, w, k)
+        return acc.pdf
     query = wp.bvh_query_ray(scene.emitter_bvh, sp.p, w)
     k = wp.int32(0)
-    seen = Crossings()  # distances, negated for back-facing crossings
-    count = wp.int32(0)
     while wp.bvh_query_next(query, k):
-        a = emitter_corner(scene, k, 0)
-        b = emitter_corner(scene, k, 1)
-        c = emitter_corner(scene, k, 2)
-        t = ray_triangle(sp.p, w, a, b, c)
-        nrm = wp.cross(b - a, c - a)
-        front = wp.dot(nrm, w) < 0.0
-        signed = wp.where(front, t, -t)
-        repeat = bool(False)
-        for i in range(count):
-            if wp.abs(seen[i] - signed) <= CROSSING_TOLERANCE * t:
-                repeat = True
-        if t > 0.0 and not repeat:
-            if count < MAX_CROSSINGS:
-                seen[count] = signed
-                count += 1
-            radiance = scene.tri_emission[scene.emitter_tri[k]]
-            if tech == LIGHT_SOLID_ANGLE:
-                # Only triangles whose front faces the receiver can be chosen.
-                if front and table.total[sp.receiver] > wp.float64(0.0):
-                    pdf = pdf + radiance / float(table.total[sp.receiver])
-            else:
-                area_density = 1.0 / scene.total_area
-                if tech == LIGHT_POWER:
-                    area_density = radiance / scene.total_power
-                cos_y = wp.max(wp.abs(wp.dot(wp.normalize(nrm), w)), 1.0e-12)
-                pdf = pdf + area_density * t * t / cos_y
-    return pdf
+        acc = add_crossing(acc, tech, scene, table, sp, w, k)
+    return acc.pdf
+
+
+@wp.struct
+class DirectionSample:
+    """A sampled direction with what its technique knows of it."""
+
+    w: wp.vec3  # zero vector: a failed sample
+    pdf: float  # the technique's density at ω; < 0: not known here (technique_pdf gives it)
+    emitter: wp.int32  # the emitter triangle the ray from x crosses first, −1: not known
+    t: float  # distance from x to that crossing
+
+
+@wp.func
+def unknown_sample(w: wp.vec3) -> DirectionSample:
+    """A direction and nothing more: its pdf and what it sees are looked up."""
+    s = DirectionSample()
+    s.w = w
+    s.pdf = -1.0
+    s.emitter = -1
+    s.t = 0.0
+    return s
+
+
+@wp.func
+def pick_light_point(tech: wp.int32, scene: SceneData, u: wp.vec2):
+    """light-area / light-power: (y, k), the point y of emitter triangle k that u maps to."""
+    n_e = scene.emitter_count
+    k = wp.int32(0)
+    ux = float(0.0)
+    if tech == LIGHT_POWER:
+        k = search_cdf(scene.power_cdf, n_e, u[0])
+        ux = rescale(u[0], scene.power_cdf[k], scene.power_cdf[k + 1])
+    else:
+        k = search_cdf(scene.area_cdf, n_e, u[0])
+        ux = rescale(u[0], scene.area_cdf[k], scene.area_cdf[k + 1])
+    y = square_to_triangle(wp.vec2(ux, u[1]), emitter_corner(scene, k, 0), emitter_corner(scene, k, 1),
+                           emitter_corner(scene, k, 2))
+    return y, k
+
+
+@wp.func
+def sample_light_point(tech: wp.int32, scene: SceneData, sp: ShadingPoint, u: wp.vec2) -> DirectionSample:
+    """light-area / light-power on a planar emitter set (``scene.planar_emitters``): the ray
+    from x crosses the emitters only at the sampled point y, so the sample knows its pdf
+    (y's density, the single term of light_pdf's sum) and that y is what it sees first
+    among the emitters."""
+    y, k = pick_light_point(tech, scene, u)
+    d = y - sp.p
+    t = wp.length(d)
+    s = unknown_sample(wp.vec3(0.0, 0.0, 0.0))
+    if t == 0.0:
+        return s
+    s.w = d / t
+    cos_y = wp.max(wp.abs(wp.dot(scene.emitter_normal[k], s.w)), 1.0e-12)
+    s.pdf = light_density(tech, scene, scene.tri_emission[scene.emitter_tri[k]]) * t * t / cos_y
+    s.emitter = k
+    s.t = t
+    return s
 
 
 @wp.func
@@ -276,16 +306,7 @@ def sample_light(tech: wp.int32, scene: SceneData, table: LightTable, sp: Shadin
         d = square_to_spherical_triangle(wp.vec2(ux, u[1]), p64, emitter_corner64(scene, k, 0),
                                          emitter_corner64(scene, k, 1), emitter_corner64(scene, k, 2))
         return wp.normalize(wp.vec3(float(d[0]), float(d[1]), float(d[2])))
-    k = wp.int32(0)
-    ux = float(0.0)
-    if tech == LIGHT_POWER:
-        k = search_cdf(scene.power_cdf, n_e, u[0])
-        ux = rescale(u[0], scene.power_cdf[k], scene.power_cdf[k + 1])
-    else:
-        k = search_cdf(scene.area_cdf, n_e, u[0])
-        ux = rescale(u[0], scene.area_cdf[k], scene.area_cdf[k + 1])
-    y = square_to_triangle(wp.vec2(ux, u[1]), emitter_corner(scene, k, 0), emitter_corner(scene, k, 1),
-                           emitter_corner(scene, k, 2))
+    y, k = pick_light_point(tech, scene, u)
     return wp.normalize(y - sp.p)
 
 
