@@ -73,7 +73,7 @@ SEED = 0x7E0
 
 
 def _make_evaluate_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -> Any:
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
                         techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2), every: wp.int32,
                         f_out: wp.array2d(dtype=wp.float64), pdf_out: wp.array3d(dtype=wp.float64)):

@@ -1,12 +1,13 @@
-"""A 4-wide BVH over a scene's triangles and its closest-hit ray query, written in Warp.
+"""A 4-wide BVH over a scene's triangles and its ray queries, written in Warp.
 
 Warp's own ``wp.mesh_query_ray`` walks a binary BVH one box pair at a time; on the CPU a
 4-wide tree whose nodes keep their children's boxes axis by axis (structure of arrays)
-lets one node test four boxes in a handful of vector instructions, and leaves of up to
-four triangles are tested together.  The query returns what ``wp.mesh_query_ray`` returns
-for the integrand's purpose (the face hit first and the sign of its facing), and falls
-back to ``wp.mesh_query_ray`` itself where its fixed stack would overflow, so no ray is
-ever dropped.
+tests four boxes per node and four triangles per leaf at once, and halves the depth.
+``closest_hit`` returns what ``wp.mesh_query_ray`` returns for the integrand's purpose
+(the face hit first and the sign of its facing), ``any_hit`` what
+``wp.mesh_query_ray_anyhit`` returns (a shadow ray); both fall back to Warp's query where
+their fixed stack would overflow, and on devices where the tree is disabled (CUDA), so no
+ray is ever dropped.
 
 Layout (one :class:`WideBvh` per scene upload):
 
@@ -22,11 +23,13 @@ Layout (one :class:`WideBvh` per scene upload):
   triangles' indices in the mesh, −1 for an empty slot.
 
 The triangle test is Woop, Benthin and Wald's watertight test (JCGT 2013), as in Warp's
-query, with the edge functions U, V, W evaluated in float64: the products of float32
-values are exact there, so two triangles sharing an edge see exactly opposite values on
-it and no ray leaks between them.  The tree is built on the host with a binned
-surface-area heuristic (:func:`build_wide_bvh`), level by level in numpy, then collapsed
-from binary to 4-wide; :mod:`warpis.kernels.device` builds it once per scene content.
+query: edge functions in float32, recomputed in float64 (where products of float32
+values are exact) for a triangle where one is 0, so two triangles sharing an edge see
+exactly opposite values on it and no ray slips between them.  The tree is built on the
+host with a binned surface-area heuristic (:func:`build_wide_bvh`), level by level in
+numpy, then collapsed from binary to 4-wide, and kept on disk by content
+(:func:`cached_wide_bvh`); :mod:`warpis.kernels.device` uploads it once per scene
+content.  Derivations and measurements: docs/theory.md, "Ray queries".
 """
 
 from __future__ import annotations

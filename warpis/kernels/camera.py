@@ -8,7 +8,7 @@ import warp as wp
 from .integrand import FAR
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def first_hit_kernel(mesh: wp.uint64, origin: wp.vec3, directions: wp.array(dtype=wp.vec3),
                      face: wp.array(dtype=wp.int32)):
     """The triangle the ray from ``origin`` along ``directions[i]`` meets first, −1 for none."""

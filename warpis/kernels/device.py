@@ -174,7 +174,7 @@ def _cdf(weights: np.ndarray) -> np.ndarray:
     return c.astype(np.float32)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                  position: wp.array(dtype=wp.vec3), slab: wp.array(dtype=wp.float32)):
     """Slab height of each receiver: SELF_HIT_SLAB × the largest coordinate magnitude of

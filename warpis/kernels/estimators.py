@@ -546,7 +546,12 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
             return total / wp.float64(m * n_g)
         return total / wp.float64(m)
 
-    @wp.kernel(module=module)
+    # No kernel of warpis is differentiated, and without a backward pass a kernel compiles
+    # about 3× faster (cold run_trials on occluded-quad: 32 s → 11 s).  The built-in trial
+    # kernel keeps Warp's default all the same: it is compiled once per cache and runs every
+    # estimate, and LLVM builds a faster forward pass beside its backward one (measured:
+    # 140 against 165 ns per evaluation of independent:single:light-area on occluded-quad).
+    @wp.kernel(module=module, enable_backward=None if module is None else False)
     def trial_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
                      trial_offset: wp.int32, seed: wp.uint32, pattern: wp.int32, combiner: wp.int32,
                      techs: wp.array(dtype=wp.int32), m: wp.int32, rows: wp.int32, cols: wp.int32,
@@ -569,7 +574,7 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
             out[i, j] = stratified_trial(scene, table, sp, seed, trial, pattern, combiner, techs, m, rows, cols,
                                          parameter)
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def pilot_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
                      seed: wp.uint32, techs: wp.array(dtype=wp.int32), pilot: wp.int32,
                      out: wp.array2d(dtype=wp.vec4d)):

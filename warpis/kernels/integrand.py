@@ -239,7 +239,7 @@ def integrand(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
     return integrand_via(scene, sp, w, -1, 0.0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _integrand_kernel(scene: SceneData, recv: ReceiverData, r: wp.int32,
                       dirs: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.float64)):
     i = wp.tid()

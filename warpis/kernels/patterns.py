@@ -392,7 +392,7 @@ def user_patterns() -> tuple[UserEntry, ...]:
 def _check_points(name: str, point: Any) -> None:
     """A WarpisError naming the first (m, stream, i) whose point is outside [0,1)² or not finite."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def points_kernel(m: wp.int32, out: wp.array2d(dtype=wp.vec2)):
         k, i = wp.tid()
         out[k, i] = point(stream(wp.uint32(0), 0, k, 0), i, m)
@@ -433,7 +433,7 @@ def point_dispatch(user: tuple[UserEntry, ...]) -> Any:
 
 @functools.lru_cache(maxsize=None)
 def _points_kernel(point: Any) -> Any:
-    @wp.kernel(module="unique")
+    @wp.kernel(module="unique", enable_backward=False)
     def points_kernel(pattern: wp.int32, seed: wp.uint32, m: wp.int32, rows: wp.int32, cols: wp.int32,
                       out: wp.array2d(dtype=wp.vec2)):
         trial, i = wp.tid()

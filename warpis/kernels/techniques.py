@@ -27,8 +27,12 @@ The pdf convention, relied on by MIS and by the theory: ``technique_pdf(ω)`` is
 of the direction ω that ``sample_technique`` produces, whatever ω hits first.  For light
 techniques a direction crossing several emitter triangles (the near and far side of a
 sphere light, an emitter behind an occluder) carries the *sum* of their densities: the
-pdf traverses a BVH of the emitter triangles alone and visits every crossing.  The pdf
-a sample reports is computed by that same function, so the two cannot disagree.
+pdf visits every crossing (a loop over a few emitter triangles, else a BVH of them).  The
+pdf a sample reports is computed by that same function, so the two cannot disagree;
+the one exception is a light-area or light-power sample on a planar emitter set
+(``sample_light_point``), whose ray crosses the emitters only at its own point: it
+reports that point's density, the single term of the sum (docs/theory.md, "The
+integrand at a receiver"; tests/test_light_paths.py holds the two against each other).
 
 User techniques (:func:`register_technique`): a ``sample``/``pdf`` pair of ``@wp.func`` s
 on a ``ShadingPoint``.  :func:`dispatch` wraps the built-in dispatch in one branch per user
@@ -377,7 +381,7 @@ def sample_technique(tech: wp.int32, scene: SceneData, table: LightTable, sp: Sh
 # --------------------------------------------------------------------------- light table
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _light_table_kernel(scene: SceneData, recv: ReceiverData, cdf: wp.array2d(dtype=wp.float64),
                         total: wp.array(dtype=wp.float64)):
     r = wp.tid()
@@ -497,7 +501,7 @@ def sampler(user: tuple[UserEntry, ...]) -> Any:
 
 
 def _make_numpy_kernels(sample_technique: Any, technique_pdf: Any, module: Any) -> tuple[Any, Any]:
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def sample_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
                       u: wp.array(dtype=wp.vec2), dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
         i = wp.tid()
@@ -506,7 +510,7 @@ def _make_numpy_kernels(sample_technique: Any, technique_pdf: Any, module: Any) 
         dirs[i] = w
         pdf[i] = wp.float64(p)
 
-    @wp.kernel(module=module)
+    @wp.kernel(module=module, enable_backward=False)
     def pdf_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
                    dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
         i = wp.tid()
