@@ -298,7 +298,9 @@ def test_the_disk_cache_returns_the_built_tree_and_replaces_a_bad_file(tmp_path,
     built = build_wide_bvh(vertices, triangles, apart)
     assert _same(cached_wide_bvh(vertices, triangles, apart), built)
     (path,) = tmp_path.iterdir()
-    assert _same(cached_wide_bvh(vertices, triangles, apart), built)  # now read from the file
+    written = path.stat().st_mtime_ns
+    assert _same(cached_wide_bvh(vertices, triangles, apart), built)  # now read from the file,
+    assert path.stat().st_mtime_ns == written  # which is accepted, not rebuilt and replaced
     # Another mesh gets another file.
     moved = vertices + np.float32(1.0)
     cached_wide_bvh(moved, triangles, apart)
@@ -310,6 +312,11 @@ def test_the_disk_cache_returns_the_built_tree_and_replaces_a_bad_file(tmp_path,
     wrong = {f: getattr(built, f) for f in ("bounds", "children", "corners", "faces")}
     wrong["faces"] = np.where(wrong["faces"] == 7, 8, wrong["faces"])  # triangle 7 lost, 8 twice
     np.savez(path, depth=built.depth, **wrong)
+    assert _same(cached_wide_bvh(vertices, triangles, apart), built)
+    # So is one whose triangles are all there, but moved (another mesh's geometry).
+    moved_corners = {f: getattr(built, f) for f in ("bounds", "children", "corners", "faces")}
+    moved_corners["corners"] = built.corners + np.float32(0.5)
+    np.savez(path, depth=built.depth, **moved_corners)
     assert _same(cached_wide_bvh(vertices, triangles, apart), built)
 
 

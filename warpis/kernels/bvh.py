@@ -628,7 +628,7 @@ def cached_wide_bvh(vertices: np.ndarray, triangles: np.ndarray, apart: np.ndarr
     try:
         with np.load(path, allow_pickle=False) as f:
             built = WideBvhArrays(**{name: f[name] for name in _CACHE_FIELDS[:-1]}, depth=int(f["depth"]))
-        if _fits(built, len(tris)):
+        if _fits(built, verts[tris]):
             return built
     except (OSError, ValueError, KeyError, TypeError):
         pass
@@ -643,15 +643,20 @@ def cached_wide_bvh(vertices: np.ndarray, triangles: np.ndarray, apart: np.ndarr
     return built
 
 
-def _fits(built: WideBvhArrays, triangle_count: int) -> bool:
-    """Whether a loaded BVH has the layout's shapes and holds each triangle once."""
+def _fits(built: WideBvhArrays, corners: np.ndarray) -> bool:
+    """Whether a loaded BVH has the layout's shapes, holds each triangle (T, 3, 3 corners)
+    once, and holds its very corners: a file that passes cannot give another mesh's hits."""
     nodes, leaves = len(built.children), len(built.faces)
     if built.bounds.shape != (6 * nodes, 4) or built.corners.shape != (9 * leaves, 4) \
             or built.children.shape != (nodes, 4) or built.faces.shape != (leaves, 4):
         return False
-    faces = built.faces[built.faces >= 0]
-    return len(faces) == triangle_count and bool(np.array_equal(np.sort(faces), np.arange(triangle_count))) \
-        and bool(np.all(built.children < nodes)) and bool(np.all(built.children >= -leaves))
+    used = built.faces >= 0
+    faces = built.faces[used]
+    if len(faces) != len(corners) or not np.array_equal(np.sort(faces), np.arange(len(corners))):
+        return False
+    stored = built.corners.reshape(leaves, 3, 3, 4).transpose(0, 3, 1, 2)[used]  # (T, vertex, coordinate)
+    return bool(np.array_equal(stored, corners[faces])) and bool(np.all(built.children < nodes)) \
+        and bool(np.all(built.children >= -leaves))
 
 
 def upload_wide_bvh(built: WideBvhArrays | None) -> WideBvh:
