@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -289,3 +290,56 @@ def test_info_on_a_mitsuba_scene_says_channel_materials_and_tessellation(cli):
     assert "5132" in result.out and "colour channel g" in result.out
     assert "roughconductor ggx alpha=0.01" in result.out
     assert result.out.count("irradiance error") == 4
+
+
+# --------------------------------------------------------------------------- progress
+
+QUICK = ["estimate", "occluded-quad", "--estimator", "independent:single:light-area", "--n", "4", "--trials", "8"]
+
+
+def _bar(err: str, what: str, unit: str) -> bool:
+    """Whether stderr holds a tqdm bar of ``what`` counting ``unit``: description, percent,
+    bar, done/total, [elapsed<left, rate]."""
+    return re.search(rf"{re.escape(what)}: +\d+%\|[^|\r\n]*\| [\d.]+[kMG]?/[\d.]+[kMG]? "
+                     rf"\[\d\d:\d\d<[^,\]]*, [^\]]*{unit}/s\]", err) is not None
+
+
+def test_progress_option_draws_a_tqdm_bar_on_stderr(cli):
+    """`--progress` shows on stderr (not a terminal here) what runs, how far and the time
+    left: the trials of `estimate`, then its reference's stages; the stages of `reference`;
+    with --json too.  stdout is what it is without the option."""
+    plain = cli(*QUICK)
+    result = cli(*QUICK, "--progress")
+    assert result.status == 0 and plain.err == "", (result.err, plain.err)
+    assert result.out == plain.out
+    assert _bar(result.err, "estimate", "trials"), result.err
+    assert _bar(result.err, "estimate: reference, quadrature", "samples"), result.err
+
+    result = cli(*QUICK, "--json", "--progress")
+    assert json.loads(result.out)["trials"] == 8 and _bar(result.err, "estimate", "trials"), result.err
+
+    result = cli("reference", "occluded-quad", "--receivers", "0,2", "--rel-error", "0.01", "--progress")
+    assert result.status == 0 and "closed-form" in result.out
+    assert _bar(result.err, "reference: closed-form test", "receivers"), result.err
+    assert _bar(result.err, "reference: quadrature", "samples"), result.err
+
+
+def test_no_progress_into_a_pipe():
+    """Without --progress, stderr that is a pipe stays empty: a fresh process, as a script
+    or a `2>log` sees it."""
+    result = run_warpis(*QUICK, "--receivers", "0,1")
+    assert result.status == 0 and result.err == "", result.err
+    assert result.out.splitlines()[0].startswith("occluded-quad")
+
+
+def test_progress_on_a_terminal_unless_json_or_quiet(cli, monkeypatch):
+    """With stderr a terminal, the bar is shown by default and not with --json; --quiet
+    turns it off, and wins over --progress in either order (README, "Commands")."""
+    monkeypatch.setattr("warpis.cli._stderr_is_terminal", lambda: True)
+    assert _bar(cli(*QUICK).err, "estimate", "trials")
+    assert _bar(cli("reference", "occluded-quad", "--receivers", "2", "--rel-error", "0.01").err,
+                "reference: quadrature", "samples")
+    for extra in (["--json"], ["--quiet"], ["--quiet", "--progress"], ["--progress", "--quiet"],
+                  ["--json", "--quiet", "--progress"]):
+        result = cli(*QUICK, *extra)
+        assert result.status == 0 and result.err == "", (extra, result.err)

@@ -11,11 +11,17 @@ Two halves:
   2^32, floats outside float32's normal range, coordinates float32 cannot square,
   devices that do not exist, files that cannot be decoded, outputs that cannot be
   written) ends in exactly one ``warpis: error:`` line, exit status 2, no traceback and
-  nothing on stdout.  The README's "Hostile input" table lists the same classes.
+  nothing on stdout.  The README's "Hostile input" table lists the same classes.  The
+  Python API refuses the same classes (a bool or float where a count or seed is due, a
+  value that is not a scene, a non-finite array) with one-line WarpisErrors naming the
+  argument (``BAD_API_CALLS``).
 """
 
 from __future__ import annotations
 
+import functools
+import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -26,9 +32,11 @@ from conftest import floor_entry, light_entry, one_error_line, write_scene
 
 import warpis
 from warpis.analysis.reference import reference
-from warpis.cli import _emit
+from warpis.analysis.stats import variance_interval
+from warpis.cli import _emit, _mean_z
 from warpis.errors import WarpisError
-from warpis.kernels.engine import run_trials
+from warpis.kernels.engine import run_moments, run_trials
+from warpis.runs.verify import verify
 from warpis.scenes import load_scene, resolve_scene_path
 
 OCCLUDED_QUAD = resolve_scene_path("occluded-quad").parent
@@ -158,6 +166,9 @@ BAD_OPTIONS = {
     "unknown device": (["info", "occluded-quad", "--device", "tpu"], "--device"),
     "jittered grid finer than float32": (_with(_with(EST, "--n", "2147483647"), "--estimator",
                                                "jittered:single:cosine"), "float32"),
+    "--progress given a value": (EST + ["--progress=yes"], "--progress"),
+    "--quiet given a value": (["reference", "occluded-quad", "--quiet=1"], "--quiet"),
+    "--progress on a command that has none": (["info", "occluded-quad", "--progress"], "--progress"),
 }
 
 
@@ -175,6 +186,28 @@ def test_stdout_that_cannot_be_written_is_one_line():
                               stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.splitlines() == ["warpis: error: standard output: cannot write: No space left on device"]
+
+
+def test_a_mean_off_a_reference_without_spread_is_not_z_zero(cli, tmp_path):
+    """Cosine sampling never meets a light of 4e-6 sr in 8 × 4 samples: mean 0 and stderr 0
+    against a closed form of 4e-5 with stderr 0.  The table's z is -inf (it was 0.00), the
+    JSON's z null and agrees false.  An umbra (0 against 0) keeps z = 0 and agrees, and
+    every other z is (mean − reference)/√(stderr² + ref stderr²)."""
+    path = write_scene(tmp_path, meshes=[floor_entry(), light_entry(height=10.0, half=0.01)])
+    args = ["estimate", path, "--estimator", "independent:single:cosine", "--n", "4", "--trials", "8"]
+    result = cli(*args)
+    assert result.status == 0, result.err
+    row = result.out.splitlines()[2].split()
+    assert row[1] == "0" and row[-1] == "-inf", row
+    data = json.loads(cli(*args, "--json").out)["receivers"][0]
+    assert (data["mean"], data["stderr"], data["reference_stderr"]) == (0.0, 0.0, 0.0) and data["reference"] > 0
+    assert data["z"] is None and data["agrees"] is False
+    quad = json.loads(cli(*EST, "--json", "--receivers", "3,4,0").out)["receivers"]
+    assert [(r["mean"], r["reference"], r["z"], r["agrees"]) for r in quad[:2]] == [(0.0, 0.0, 0.0, True)] * 2
+    r = quad[2]
+    z = (r["mean"] - r["reference"]) / math.hypot(r["stderr"], r["reference_stderr"])
+    assert r["z"] == pytest.approx(z, rel=1e-12) and r["agrees"] == (abs(z) <= 1.959963984540054)
+    assert _mean_z(1.0, 0.0, 0.5, 0.0) == (math.inf, False) and _mean_z(0.5, 0.0, 1.0, 0.0) == (-math.inf, False)
 
 
 def test_no_nan_or_infinity_is_ever_printed():
@@ -253,6 +286,74 @@ def test_api_rejects_a_device_that_does_not_exist():
     for device in ("tpu", "cuda:7", "CPU"):
         with pytest.raises(WarpisError, match="device"):
             warpis.load_scene("occluded-quad", device=device)
+
+
+# --------------------------------------------------------------------------- bad input: the Python API
+
+LIGHT_AREA = "independent:single:light-area"
+
+
+@functools.cache
+def _quad() -> warpis.Scene:
+    return load_scene("occluded-quad")
+
+
+SEED_TRUE = r"^seed: expected an integer in \[0, 2\^32\), got True$"
+BAD_API_CALLS = {
+    "receivers a bool": (lambda: run_trials(_quad(), LIGHT_AREA, 4, 8, receivers=True), r"^receivers: expected"),
+    "receivers a string": (lambda: run_moments(_quad(), LIGHT_AREA, 4, 8, receivers="0,1"), r"^receivers: expected"),
+    "receivers a float": (lambda: reference(_quad(), receivers=2.0), r"^receivers: expected receiver indices"),
+    "one receiver that does not exist": (lambda: run_moments(_quad(), LIGHT_AREA, 4, 8, receivers=8),
+                                         r"^receivers: receiver 8 does not exist"),
+    "scene of the wrong type": (lambda: run_trials(5, LIGHT_AREA, 4, 8), r"^scene: expected a Scene, a bundled"),
+    "reference of no scene": (lambda: reference(None), r"^scene: expected a Scene"),
+    "scene name that does not exist": (lambda: run_moments("no-such-scene", LIGHT_AREA, 4, 8),
+                                       r"^no-such-scene: no such scene file or bundled scene"),
+    "run_trials seed=True": (lambda: run_trials(_quad(), LIGHT_AREA, 4, 8, seed=True), SEED_TRUE),
+    "run_moments seed=True": (lambda: run_moments(_quad(), LIGHT_AREA, 4, 8, seed=True), SEED_TRUE),
+    "reference seed=True": (lambda: reference(_quad(), seed=True), SEED_TRUE),
+    "verify seed=True": (lambda: verify(_quad(), estimators=[LIGHT_AREA], n_values=[4], trials=8, seed=True),
+                         SEED_TRUE),
+    "verify trials a float": (lambda: verify(_quad(), estimators=[LIGHT_AREA], n_values=[4], trials=8.0),
+                              r"^trials: expected an integer, got 8.0$"),
+    "n a bool": (lambda: run_trials(_quad(), LIGHT_AREA, True, 8), r"^n: expected an integer, got True$"),
+    "trials a float": (lambda: run_moments(_quad(), LIGHT_AREA, 4, 8.0), r"^trials: expected an integer, got 8.0$"),
+    "threads a bool": (lambda: run_trials(_quad(), LIGHT_AREA, 4, 8, threads=True), r"^threads: expected an integer"),
+    "progress not callable": (lambda: run_trials(_quad(), LIGHT_AREA, 4, 8, progress=5), r"^progress: expected a"),
+    "variance_interval of one trial": (lambda: variance_interval([1.0]),
+                                       r"^estimates: a variance interval needs at least 2 trials"),
+    "variance_interval with a NaN": (lambda: warpis.variance_interval([1.0, math.nan, 2.0]),
+                                     r"^estimates\[1\]: nan is not a finite number"),
+    "variance_interval with an infinity": (lambda: variance_interval([[1.0, 2.0], [3.0, -math.inf]]),
+                                           r"^estimates\[1, 1\]: -inf is not a finite number"),
+    "variance_interval of strings": (lambda: variance_interval(["a", "b"]), r"^estimates: expected an array of real"),
+    "variance_interval of a ragged list": (lambda: variance_interval([[1.0, 2.0], [3.0]]),
+                                           r"^estimates: expected an array of real"),
+    "variance_interval of one number": (lambda: variance_interval(3.0), r"^estimates: expected an array of trials"),
+    "variance_interval at level 2": (lambda: variance_interval([1.0, 2.0, 3.0], level=2), r"^level: .* got 2$"),
+    "variance_interval at level True": (lambda: variance_interval([1.0, 2.0, 3.0], level=True), r"^level: .* True$"),
+    "variance_interval on an axis it lacks": (lambda: variance_interval([1.0, 2.0, 3.0], axis=1), r"^axis: .* axis 1"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_API_CALLS))
+def test_bad_api_call_is_one_line(case):
+    """Each bad argument of the Python API is a WarpisError of one line naming the
+    argument (never a TypeError, AttributeError, ValueError or a silent NaN)."""
+    call, match = BAD_API_CALLS[case]
+    with pytest.raises(WarpisError, match=match) as info:
+        call()
+    assert "\n" not in str(info.value)
+
+
+def test_api_takes_one_receiver_and_a_scene_by_name():
+    """One integer is one receiver, and a bundled scene's name or a scene file's path is
+    loaded as load_scene loads it: the same numbers as a list and a loaded scene."""
+    expected = run_trials(_quad(), LIGHT_AREA, 4, 16, seed=2, receivers=[1])
+    np.testing.assert_array_equal(run_trials("occluded-quad", LIGHT_AREA, 4, 16, seed=2, receivers=1), expected)
+    moments = run_moments(resolve_scene_path("occluded-quad"), LIGHT_AREA, 4, 16, seed=2, receivers=np.int64(1))
+    np.testing.assert_allclose(moments.mean, expected.mean(axis=1), rtol=1e-12)
+    assert reference("occluded-quad", receivers=0) == reference(_quad(), receivers=[0])
 
 
 def test_a_non_finite_estimate_stops_the_run():

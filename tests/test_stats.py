@@ -15,6 +15,7 @@ import pytest
 from scipy.stats import binom, chi2
 
 from warpis.analysis.stats import SlopeFit, VarianceEstimate, fit_slope, sidak_threshold, variance_interval, zscore
+from warpis.errors import WarpisError
 
 # ---------------------------------------------------------------------------------------
 # helpers
@@ -118,7 +119,7 @@ def test_variance_interval_shapes_and_axis():
         np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-14)
     c = variance_interval(rng.normal(size=(2, 3, 40)), axis=1)
     assert c.variance.shape == (2, 40) and c.trials == 3
-    with pytest.raises(ValueError):
+    with pytest.raises(WarpisError, match="at least 2 trials"):
         variance_interval([1.0])
 
 

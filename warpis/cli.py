@@ -6,6 +6,11 @@ Bad input (files, scenes, estimator specs, options) ends with one line on stderr
 ``--plugin FILE`` (any command, repeatable) runs a Python file before the command, so
 that the techniques and patterns it registers (``warpis.register_technique``,
 ``warpis.register_pattern``) can be named in estimator specs and study files.
+
+The commands that can run for minutes (reference, estimate, verify, image, study, demo)
+show what they are doing, how far they are and the time left as a tqdm bar on stderr:
+when stderr is a terminal and the output is not ``--json``, or always with
+``--progress``; never with ``--quiet``, which wins over ``--progress``.
 """
 
 from __future__ import annotations
@@ -159,14 +164,10 @@ def cmd_reference(args: argparse.Namespace) -> int:
     rel_error = check_rel_error(args.rel_error, "--rel-error") if args.rel_error is not None else DEFAULT_REL_ERROR
     samples = limits.count_text(args.samples, "--samples") if args.samples is not None else MAX_QUADRATURE_SAMPLES
     scene = _load(args)
-    with _progress(0, "samples") as bar:
-        bar.bar.unit_scale = True
-
-        def progress(done: int, total: int) -> None:
-            bar.bar.total = total
-            bar(done, total)
-
-        refs = reference(scene, args.receivers, samples=samples, rel_error=rel_error, progress=progress)
+    count = len(args.receivers) if args.receivers is not None else len(scene.receivers)
+    with _Progress(args, "reference", "receivers", total=count, scale=True) as bar:
+        refs = reference(scene, args.receivers, samples=samples, rel_error=rel_error, progress=bar,
+                         stage=bar.stage)
     data = {"scene": scene.name, "rel_error": rel_error, "samples": samples, "receivers": [r.as_dict() for r in refs]}
     lines = [f"{scene.name}: target stderr <= {rel_error:g} × |value| within {samples} samples per replica",
              f"{'receiver':>8} {'value':>14} {'stderr':>11} {'relative':>9}  method"]
@@ -189,18 +190,22 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     est.check_n(args.n)
     check_trials(args.trials)  # the one floor of verify and study: it reports a variance interval too
     scene = _load(args)
-    with _progress(args.trials, "trials") as bar:  # running moments: memory flat in --trials
+    with _Progress(args, "estimate", "trials", total=args.trials, scale=True) as bar:
+        # running moments: memory flat in --trials
         moments = run_moments(scene, est, args.n, args.trials, seed=args.seed, receivers=args.receivers,
                               threads=args.threads, progress=bar)
+        refs = reference(scene, args.receivers, progress=bar,
+                         stage=lambda what, unit: bar.stage(f"reference, {what}", unit))
     stats = moments.interval()
-    refs = reference(scene, args.receivers)
     alphas = _optimal_alphas(scene, est, args)
     rows = []
     for i, ref in enumerate(refs):
+        z, agrees = _mean_z(float(stats.mean[i]), float(stats.mean_stderr[i]), ref.value, ref.stderr)
         rows.append({
             "index": ref.index, "mean": float(stats.mean[i]), "stderr": float(stats.mean_stderr[i]),
             "variance": float(stats.variance[i]), "variance_ci": [float(stats.lo[i]), float(stats.hi[i])],
             "reference": ref.value, "reference_stderr": ref.stderr, "reference_method": ref.method,
+            "z": z if math.isfinite(z) else None, "agrees": agrees,
             **({} if alphas is None else {key: value[i].tolist() for key, value in alphas.items()}),
         })
     data = {"scene": scene.name, "estimator": est.spec, "n": args.n, "trials": args.trials, "seed": args.seed,
@@ -209,15 +214,36 @@ def cmd_estimate(args: argparse.Namespace) -> int:
              f"{'receiver':>8} {'mean':>13} {'stderr':>10} {'variance':>11} {'95% interval':>25} "
              f"{'reference':>13} {'ref stderr':>10} {'z':>6}"]
     for r in rows:
-        se = (r["stderr"] ** 2 + r["reference_stderr"] ** 2) ** 0.5
-        z = (r["mean"] - r["reference"]) / se if se > 0 else 0.0
         lo, hi = r["variance_ci"]
         lines.append(f"{r['index']:>8} {r['mean']:>13.7g} {r['stderr']:>10.3g} {r['variance']:>11.4g} "
-                     f"{f'[{lo:.4g}, {hi:.4g}]':>25} {r['reference']:>13.7g} {r['reference_stderr']:>10.3g} {z:>6.2f}")
+                     f"{f'[{lo:.4g}, {hi:.4g}]':>25} {r['reference']:>13.7g} {r['reference_stderr']:>10.3g} "
+                     f"{_z_text(r):>6}")
     if alphas is not None:
         lines += _alpha_lines(est, rows)
     _emit(data, args.json, "\n".join(lines))
     return 0
+
+
+def _mean_z(mean: float, stderr: float, ref: float, ref_stderr: float) -> tuple[float, bool]:
+    """z = (mean − reference)/√(stderr² + ref_stderr²) and whether the two agree.
+
+    With no spread on either side z is 0 where they are equal and ±inf where they are
+    not (``stats.zscore``); they agree when |z| ≤ 1.96, the two-sided 95% rule by which
+    verify and study call a prediction inside.
+    """
+    from .analysis.stats import zscore
+    from .runs.cell import Z95
+
+    z = float(zscore(mean, math.hypot(stderr, ref_stderr), ref))
+    return z, bool(abs(z) <= Z95)
+
+
+def _z_text(row: dict[str, Any]) -> str:
+    """The z of an estimate row as printed: 2 decimals, or ±inf where the mean differs from
+    a reference with no spread on either side (JSON holds null there, and "agrees": false)."""
+    if row["z"] is not None:
+        return f"{row['z']:.2f}"
+    return "+inf" if row["mean"] > row["reference"] else "-inf"
 
 
 def _optimal_alphas(scene: Any, est: Any, args: argparse.Namespace) -> dict[str, Any] | None:
@@ -257,16 +283,12 @@ def cmd_verify(args: argparse.Namespace) -> int:
     for t in techniques or ():
         TECHNIQUES.lookup(t)
     scene = _load(args)
-    with _progress(0, "cells") as bar:
-        def progress(done: int, total: int) -> None:
-            bar.bar.total = total
-            bar(done, total)
-
+    with _Progress(args, "verify", "cells") as bar:
         # One lock over verify.json, verify.md and the figures (verify() re-enters it); a folder
         # it creates is removed again if verify() then refuses its arguments.
         with outdir.locked(out) if out is not None else contextlib.nullcontext(), _runner(args) as runner:
             result = verify(scene, techniques, estimators, n_values, args.trials, args.seed, args.receivers,
-                            args.threads, out, progress, runner)
+                            args.threads, out, bar, runner)
             if out is not None:
                 command = "warpis " + " ".join(sys.argv[1:]) if sys.argv[1:] else f"warpis verify {args.scene}"
                 write_outputs(out, result, command)
@@ -309,17 +331,9 @@ def cmd_image(args: argparse.Namespace) -> int:
                    threads=args.threads)
     out = out if out is not None else Path("warpis-out") / f"image-{scene.name}"
     command = "warpis " + " ".join(sys.argv[1:]) if sys.argv[1:] else f"warpis image {args.scene}"
-    with _progress(0, "pixel-trials") as bar:
-        bar.bar.unit_scale = True
-
-        def progress(done: int, total: int) -> None:
-            bar.bar.total = total
-            bar(done, total)
-
-        def log(line: str) -> None:
-            bar.bar.write(line, file=sys.stderr)
-
-        result = run_image(run, out, progress, log, command)
+    with _Progress(args, "image", "pixel-trials", scale=True) as bar:
+        # Its stage lines ("reference image …") are progress too: above the bar, or not at all.
+        result = run_image(run, out, bar, (lambda line: bar.write(line, sys.stderr)) if bar.shown else None, command)
     lines = [f"{scene.name}: {len(scene.receivers)} pixels measured of {scene.receivers.image.camera.width} × "
              f"{scene.receivers.image.camera.height}, N={args.n}, {args.trials} trials, {result.meta['seconds']:.0f} s "
              f"({result.computed} tile(s) computed, {result.reused} reused)"]
@@ -385,17 +399,12 @@ def _run_study(study, out, args: argparse.Namespace) -> int:
         cells = len(study.cells())
         print(f"study {study.name}: {cells} cells ({len(study.scenes)} scene(s) × {len(study.estimators)} "
               f"estimator(s) × {len(study.n)} N), {study.trials} trials each, into {out}", flush=True)
-        with _progress(0, "cells") as bar:
-            def progress(done: int, total: int) -> None:
-                bar.bar.total = total
-                bar.bar.refresh()
-                bar(done, total)
-
+        with _Progress(args, study.name, "cells") as bar:
             def log(line: str) -> None:
-                bar.bar.write(line, file=sys.stdout)
+                bar.write(line, sys.stdout)
                 sys.stdout.flush()
 
-            run = run_study(study, out, progress=progress, log=log, runner=runner)
+            run = run_study(study, out, progress=bar, log=log, runner=runner)
     print(f"computed {run.computed} cell(s), skipped {run.skipped} already finished; "
           f"{len(run.rows)} rows in {out / 'results.csv'}")
     print(f"wrote {out / 'report.md'}, {out / 'summary.json'} and {len(run.figures)} figure file(s) in "
@@ -411,22 +420,68 @@ def _int_list(text: str, option: str) -> list[int]:
     return values
 
 
-class _progress:
-    """A tqdm bar on stderr (silent when stderr is not a terminal) fed by the engine's progress."""
+def _stderr_is_terminal() -> bool:
+    """Whether stderr is a terminal (where a bar redraws in place and a person watches)."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # replaced by an object without one, or closed
+        return False
 
-    def __init__(self, total: int, unit: str):
-        self.total, self.unit, self.bar = total, unit, None
 
-    def __enter__(self):
+def progress_shown(args: argparse.Namespace) -> bool:
+    """Whether a command shows progress: never with ``--quiet`` (it wins over
+    ``--progress``), always with ``--progress``, else when stderr is a terminal and the
+    output is not ``--json``."""
+    if getattr(args, "quiet", False):
+        return False
+    if getattr(args, "progress", False):
+        return True
+    return not getattr(args, "json", False) and _stderr_is_terminal()
+
+
+class _Progress:
+    """One tqdm bar on stderr fed by the engine's and the reference's ``Progress``
+    callbacks: what the command is doing (``what``, then each ``stage``), how far it is
+    and the time left.  Disabled (every call a no-op) unless :func:`progress_shown`."""
+
+    def __init__(self, args: argparse.Namespace, what: str, unit: str, total: int = 0, scale: bool = False):
+        self.what, self.unit, self.total, self.scale = what, unit, total, scale
+        self.shown = progress_shown(args)
+        self.bar: Any = None
+
+    def __enter__(self) -> _Progress:
         from tqdm import tqdm
 
-        self.bar = tqdm(total=self.total, unit=self.unit, disable=None, file=sys.stderr, leave=False)
+        # To a terminal the bar redraws in place; to a file or pipe (--progress) each
+        # redraw is a new record, so fewer of them.
+        interval = 0.1 if _stderr_is_terminal() else 1.0
+        self.bar = tqdm(total=self.total or None, desc=self.what, unit=self.unit, unit_scale=self.scale,
+                        disable=not self.shown, file=sys.stderr, leave=False, dynamic_ncols=True,
+                        mininterval=interval)
         return self
 
     def __call__(self, done: int, total: int) -> None:
+        """``Progress``: ``done`` of ``total`` (the total may grow as work is planned)."""
+        if not self.shown:
+            return
+        if total != self.bar.total:
+            self.bar.total = total
+            self.bar.refresh()
         self.bar.update(done - self.bar.n)
 
-    def __exit__(self, *exc) -> None:
+    def stage(self, what: str, unit: str) -> None:
+        """A new stage of the command: the count restarts at 0, in ``unit``."""
+        if not self.shown:
+            return
+        self.bar.set_description_str(f"{self.what}: {what}", refresh=False)
+        self.bar.unit = unit
+        self.bar.reset(total=0)
+
+    def write(self, line: str, file: Any) -> None:
+        """A line of output that the bar, when shown, redraws below."""
+        self.bar.write(line, file=file)
+
+    def __exit__(self, *exc: Any) -> None:
         self.bar.close()
 
 
@@ -459,6 +514,15 @@ def load_plugin(path: str) -> None:
 
 
 # --------------------------------------------------------------------------- parser
+
+
+def progress_options(c: argparse.ArgumentParser) -> None:
+    """``--progress`` / ``--quiet``: the progress bar on stderr, forced on or off."""
+    c.add_argument("--progress", action="store_true",
+                   help="show progress on stderr (what runs, how far, the time left) even when stderr is not a "
+                        "terminal or with --json; by default only on a terminal and not with --json")
+    c.add_argument("--quiet", action="store_true", help="show no progress (wins over --progress); results, "
+                                                        "warnings and errors are printed as ever")
 
 
 def cluster_options(c: argparse.ArgumentParser) -> None:
@@ -514,6 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(1e-5 costs ~20× that)")
     c.add_argument("--samples", metavar="N", help="the most quadrature samples per replica (32 replicas) before it "
                                                   "stops short of --rel-error with a warning (default 1048576)")
+    progress_options(c)
     c.set_defaults(func=cmd_reference)
 
     c = scene_command("estimate", "run M independent trials of one estimator; mean, variance and its interval",
@@ -525,6 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=_seed, default=0, help="random seed in [0, 2^32) (default 0)")
     c.add_argument("--receivers", type=_receiver_list, help="comma-separated receiver indices (default: all)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores; results do not depend on it)")
+    progress_options(c)
     c.set_defaults(func=cmd_estimate)
 
     c = scene_command("verify", "hold measured variances against the seed's equations, cell by cell",
@@ -540,6 +606,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
     c.add_argument("--out", help="directory for verify.json, verify.md and figures")
     cluster_options(c)
+    progress_options(c)
     c.set_defaults(func=cmd_verify)
 
     c = scene_command("image", "every pixel of the scene's camera a receiver: mean, variance, predicted variance and "
@@ -558,6 +625,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "(default 4096; 0: no predictions)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores; results do not depend on it)")
     c.add_argument("--out", help="output directory (default ./warpis-out/image-<scene>/); rerunning resumes")
+    progress_options(c)
     c.set_defaults(func=cmd_image)
 
     c = sub.add_parser("study", help="run a study file (scenes × estimators × N) into results, figures and a report; "
@@ -569,6 +637,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", help="output directory (default ./warpis-out/<name>/)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: the study's, else all cores)")
     cluster_options(c)
+    progress_options(c)
     c.set_defaults(func=cmd_study)
 
     c = sub.add_parser("demo", help="the main job: ten estimators on occluded-quad, variance against N, "
@@ -578,6 +647,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", help="output directory (default ./warpis-out/demo/)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: all cores)")
     cluster_options(c)
+    progress_options(c)
     c.set_defaults(func=cmd_demo)
     return p
 

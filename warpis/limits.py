@@ -83,8 +83,17 @@ def seed(value: Any, what: str = "seed") -> int:
     return s
 
 
-def receiver_indices(values: Iterable[Any], what: str, size: int) -> np.ndarray:
-    """Receiver indices, integers in [0, size), as int32 (never truncated: 1.5 is refused)."""
+def receiver_indices(values: Iterable[Any] | int, what: str, size: int) -> np.ndarray:
+    """Receiver indices, integers in [0, size), as int32 (never truncated: 1.5 is refused).
+
+    One integer is one receiver (``3`` is ``[3]``); a string, a bool or anything else that
+    is not a sequence of integers is refused, naming ``what``.
+    """
+    if _integral(values) is not None or (isinstance(values, np.ndarray) and values.ndim == 0):
+        values = [values.item() if isinstance(values, np.ndarray) else values]
+    elif isinstance(values, (str, bytes, bool)) or not isinstance(values, Iterable):
+        raise WarpisError(f"{what}: expected receiver indices (an integer or a sequence of integers), "
+                          f"got {values!r}")
     out = []
     for v in values:
         i = _integral(v)

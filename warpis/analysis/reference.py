@@ -40,14 +40,14 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..errors import WarpisError
-from ..kernels.engine import run_trials, select_receivers
+from ..kernels.engine import as_scene, run_trials, select_receivers
 from ..kernels.estimators import parse_estimator
 from ..kernels.integrand import MATERIALS
 from ..kernels.techniques import TECHNIQUES
 from ..limits import count as check_count
 from ..limits import seed as check_seed
 from ..scenes import Scene
-from .closed_form import pyramid_blockers, triangle_irradiance
+from .closed_form import _DEFAULT_REL_TOL, pyramid_blockers, triangle_irradiance
 
 QUADRATURE_SAMPLES = 4096
 QUADRATURE_REPLICAS = 32
@@ -74,7 +74,11 @@ GROWTH = 16
 
 DIFFUSE_CANDIDATES = ("jittered:single:light-solid-angle", "jittered:single:light-area")
 
-Progress = Callable[[int, int], None]  # (samples done, samples planned so far), all receivers
+Progress = Callable[[int, int], None]  # (done, planned so far) in the unit of the current stage
+Stage = Callable[[str, str], None]  # (what starts now, the unit progress then counts in)
+# Receivers per call of the closed form's occlusion test (milliseconds each against
+# tessellated lights): progress moves between calls, also on a grid of a million.
+CLOSED_FORM_CHUNK = 256
 
 
 @dataclass(frozen=True)
@@ -146,15 +150,17 @@ def reference(
     rel_error: float | None = None,
     progress: Progress | None = None,
     closed_form: bool = True,
+    stage: Stage | None = None,
 ) -> list[Reference]:
     """Reference values for the chosen receivers (default: all), with standard errors.
 
     Parameters
     ----------
     scene
-        A loaded scene.
+        A loaded scene, or a bundled scene's name or a scene file's path (loaded on the
+        CPU as :func:`~warpis.scenes.load_scene` does).
     receivers
-        Receiver indices; default all.
+        Receiver indices; default all (one integer is one receiver).
     samples
         Jittered samples per replica: the count of fixed mode (default
         ``QUADRATURE_SAMPLES``), or the most a targeted quadrature may use (default
@@ -168,13 +174,20 @@ def reference(
         docstring for the rule near F = 0).  Receivers that miss it within ``samples``
         report the error reached, ``target_met=False``, and one warning names them.
     progress
-        Called as ``progress(done, planned)`` in samples after each launch.
+        Called as ``progress(done, planned)`` as the work goes: in receivers through the
+        closed form's occlusion test (after every ``CLOSED_FORM_CHUNK``), then in samples
+        through the quadrature (after each launch).
     closed_form
         False integrates every receiver by quadrature (to test the quadrature where the
         closed form is known, or to skip the closed form's occlusion test, which costs
         milliseconds per receiver against tessellated lights: camera images).  The test
         runs only for diffuse receivers, the only ones whose closed form is F.
+    stage
+        Called as ``stage(what, unit)`` when each of those two stages starts
+        (``("closed-form test", "receivers")``, ``("quadrature", "samples")``), so that a
+        display can say what the counts of ``progress`` are.
     """
+    scene = as_scene(scene)
     target = None if rel_error is None else check_rel_error(rel_error)
     budget = check_count(samples if samples is not None else
                          (QUADRATURE_SAMPLES if target is None else MAX_QUADRATURE_SAMPLES), "samples")
@@ -182,7 +195,7 @@ def reference(
     seed = check_seed(seed)
     idx = select_receivers(scene, receivers)
     values, diffuse = _lambert(scene, idx)
-    exact = _unblocked(scene, idx, diffuse) if closed_form else np.zeros(len(idx), bool)
+    exact = _unblocked(scene, idx, diffuse, progress, stage) if closed_form else np.zeros(len(idx), bool)
     out: dict[int, Reference] = {}
     for i, r in enumerate(idx):
         if exact[i]:
@@ -190,6 +203,8 @@ def reference(
                                     None if target is None else True)
     todo = [int(r) for r in idx if int(r) not in out]
     floor = {int(r): FLOOR * abs(float(values[i])) for i, r in enumerate(idx)}
+    if todo and stage is not None:
+        stage("quadrature", "samples")
     tick = _Ticker(progress)
     if target is None:
         out.update(fixed_quadrature(scene, todo, budget, replicas, seed, tick))
@@ -215,15 +230,32 @@ def _lambert(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return values * albedo, diffuse
 
 
-def _unblocked(scene: Scene, idx: np.ndarray, among: np.ndarray) -> np.ndarray:
+def _unblocked(scene: Scene, idx: np.ndarray, among: np.ndarray, progress: Progress | None = None,
+               stage: Stage | None = None) -> np.ndarray:
     """Where no scene triangle meets any receiver–emitter pyramid (the closed form is
     exact), tested only for the receivers ``among`` (the test costs milliseconds per
-    receiver against tessellated lights); False elsewhere."""
+    receiver against tessellated lights); False elsewhere.
+
+    The test runs ``CLOSED_FORM_CHUNK`` receivers at a time, with ``progress`` told after
+    each; its tolerance is the one a single call over all of them would take (it depends
+    on the bounding box of the triangles and these receivers), so the result is the same.
+    """
     out = np.zeros(len(idx), bool)
-    if among.any():
-        rx, sel = scene.receivers, idx[among]
-        out[among] = ~pyramid_blockers(rx.positions[sel], rx.normals[sel], scene.triangle_vertices(),
-                                       scene.emission != 0.0)
+    if not among.any():
+        return out
+    rx, sel = scene.receivers, idx[among]
+    tris, emits = scene.triangle_vertices(), scene.emission != 0.0
+    pts = np.concatenate([tris.reshape(-1, 3), rx.positions[sel]], axis=0)
+    tol = _DEFAULT_REL_TOL * float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    if stage is not None:
+        stage("closed-form test", "receivers")
+    clear = np.empty(len(sel), bool)
+    for start in range(0, len(sel), CLOSED_FORM_CHUNK):
+        part = sel[start:start + CLOSED_FORM_CHUNK]
+        clear[start:start + len(part)] = ~pyramid_blockers(rx.positions[part], rx.normals[part], tris, emits, tol)
+        if progress is not None:
+            progress(start + len(part), len(sel))
+    out[among] = clear
     return out
 
 

@@ -25,6 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import ndtri, stdtrit
 
+from ..errors import WarpisError
+
 __all__ = [
     "VarianceEstimate",
     "SampleMoments",
@@ -115,13 +117,37 @@ def variance_interval(estimates: ArrayLike, axis: int = -1, level: float = 0.95)
 
     Raises
     ------
-    ValueError
-        When there are fewer than 2 trials or `level` is not in (0, 1).
+    WarpisError
+        One line naming the argument: `estimates` that are not an array of real numbers,
+        hold a NaN or an infinity (its index is named) or fewer than 2 trials along
+        `axis`; an `axis` the array lacks; a `level` outside (0, 1).
     """
-    x = np.moveaxis(np.asarray(estimates, dtype=np.float64), axis, -1)
+    _check_level(level)
+    try:
+        raw = np.asarray(estimates, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise WarpisError(f"estimates: expected an array of real numbers ({str(exc).splitlines()[0]})") from None
+    if raw.ndim == 0:
+        raise WarpisError(f"estimates: expected an array of trials, got one value ({estimates!r})")
+    finite = np.isfinite(raw)
+    if not finite.all():
+        bad = tuple(int(i) for i in np.argwhere(~finite)[0])
+        where = ", ".join(map(str, bad))
+        raise WarpisError(f"estimates[{where}]: {raw[bad]} is not a finite number; nothing is computed from it")
+    if isinstance(axis, bool) or not isinstance(axis, (int, np.integer)) or not -raw.ndim <= axis < raw.ndim:
+        raise WarpisError(f"axis: the estimates have {raw.ndim} dimension(s), so axis {axis!r} does not exist")
+    x = np.moveaxis(raw, axis, -1)
     if x.shape[-1] < 2:
-        raise ValueError(f"variance_interval needs at least 2 trials, got {x.shape[-1]}")
+        raise WarpisError(f"estimates: a variance interval needs at least 2 trials along axis {axis}, "
+                          f"got {x.shape[-1]}")
     return SampleMoments.of(x).interval(level)
+
+
+def _check_level(level: float) -> None:
+    """A two-sided confidence level in (0, 1), else a one-line error."""
+    if isinstance(level, bool) or not isinstance(level, (int, float, np.integer, np.floating)) \
+            or not 0.0 < level < 1.0:
+        raise WarpisError(f"level: a two-sided confidence level must be a number in (0, 1), got {level!r}")
 
 
 def _interval(mean: FloatArray, s2: FloatArray, m4: FloatArray, m: int, level: float) -> VarianceEstimate:
@@ -129,10 +155,9 @@ def _interval(mean: FloatArray, s2: FloatArray, m4: FloatArray, m: int, level: f
 
     The one definition behind :func:`variance_interval` and :meth:`SampleMoments.interval`.
     """
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
+    _check_level(level)
     if m < 2:
-        raise ValueError(f"a variance interval needs at least 2 trials, got {m}")
+        raise WarpisError(f"a variance interval needs at least 2 trials, got {m}")
     var_s2 = (m4 - s2 * s2 * (m - 3) / (m - 1)) / m
     se = np.sqrt(np.maximum(var_s2, 0.0))
     z = float(ndtri(0.5 * (1.0 + level)))
@@ -239,7 +264,9 @@ class SampleMoments:
         Raises
         ------
         ValueError
-            When rows hold different counts, fewer than 2 values, or `level` is not in (0, 1).
+            When rows hold different counts.
+        WarpisError
+            When rows hold fewer than 2 values, or `level` is not in (0, 1).
         """
         counts = np.unique(self.count)
         if counts.size != 1:

@@ -68,8 +68,22 @@ def default_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def select_receivers(scene: Scene, receivers: Sequence[int] | None) -> np.ndarray:
-    """Receiver indices as int32, validated against the scene (default: all)."""
+def as_scene(scene: Scene | str | os.PathLike, what: str = "scene") -> Scene:
+    """A loaded scene: a :class:`~warpis.scenes.Scene` as it is, a bundled scene's name or
+    a scene file's path loaded on the CPU as :func:`~warpis.scenes.load_scene` loads it;
+    anything else a one-line error naming ``what``."""
+    from ..scenes import Scene, load_scene  # scenes import the kernels' registries
+
+    if isinstance(scene, Scene):
+        return scene
+    if isinstance(scene, (str, os.PathLike)):
+        return load_scene(scene)
+    raise WarpisError(f"{what}: expected a Scene, a bundled scene's name or a scene file's path, "
+                      f"got {type(scene).__name__} {scene!r}")
+
+
+def select_receivers(scene: Scene, receivers: Sequence[int] | int | None) -> np.ndarray:
+    """Receiver indices as int32, validated against the scene (default: all; one integer is one receiver)."""
     if receivers is None:
         return np.arange(len(scene.receivers), dtype=np.int32)
     return limits.receiver_indices(receivers, "receivers", len(scene.receivers))
@@ -99,6 +113,7 @@ class _Job:
 def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed: int,
              receivers: Sequence[int] | None, first: int = 0) -> _Job:
     """Validate the arguments (nothing truncated or wrapped) and upload the kernel inputs."""
+    scene = as_scene(scene)
     est = parse_estimator(estimator)
     n = limits.count(n, "n")
     trials = limits.count(trials, "trials")
@@ -158,6 +173,8 @@ def _drive(job: _Job, work: Callable[[int, np.ndarray], T], finish: Callable[[in
     """
     workers = default_threads() if threads is None else limits.count(threads, "threads")
     size = _chunk_size(job, chunk, workers)
+    if progress is not None and not callable(progress):
+        raise WarpisError(f"progress: expected a callable progress(done, total), got {progress!r}")
     local = threading.local()
     done = 0
 
@@ -293,7 +310,8 @@ def run_trials(
     Parameters
     ----------
     scene
-        A loaded scene (its device is used).
+        A loaded scene (its device is used), or a bundled scene's name or a scene file's
+        path, loaded on the CPU as :func:`~warpis.scenes.load_scene` does.
     estimator
         An :class:`Estimator` or its spelling, e.g. ``"jittered:balance:light-area+cosine"``.
     n
@@ -304,7 +322,7 @@ def run_trials(
         Seed of the counter-based generator, an integer in [0, 2^32); different seeds
         give independent trials.
     receivers
-        Receiver indices, integers (default: all).
+        Receiver indices, integers (default: all); one integer is one receiver.
     threads
         CPU worker threads (default: :func:`default_threads`).  Does not change results.
     chunk
@@ -417,6 +435,7 @@ def pilot_alphas(scene: Scene, estimator: str | Estimator, n: int, trials: int, 
     """The α the optimal combiner's pilot finds at each receiver in each trial, exactly as
     the trial kernel does: (R, M, N_g).  A one-line WarpisError for an estimator without a
     pilot or for arguments the kernels cannot take."""
+    scene = as_scene(scene)
     est = parse_estimator(estimator)
     if not est.combiner_entry.pilot:
         raise WarpisError(f"estimator {est.spec!r}: combiner {est.combiner!r} has no pilot")

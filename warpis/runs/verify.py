@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import limits
 from ..analysis.theory import missing_forms
-from ..kernels.engine import select_receivers
+from ..kernels.engine import as_scene, select_receivers
 from ..kernels.estimators import COMBINERS, Estimator, parse_estimator
 from ..kernels.integrand import MATERIALS
 from ..kernels.patterns import PATTERNS
@@ -114,12 +115,15 @@ def verify(
     ``runner`` measures the cells (default: here, with ``threads``; a Dask cluster:
     :func:`warpis.runs.cluster.connect`); the result does not depend on it.
     """
+    scene = as_scene(scene)
     techs = tuple(techniques) if techniques else default_techniques(scene)
     ests = [parse_estimator(e) for e in estimators] if estimators else default_estimators(techs)
     for est in ests:
         for n in n_values:
             est.check_n(n)
+    trials = limits.count(trials, "trials")
     check_trials(trials)
+    seed = limits.seed(seed)  # up front, as every other bad value: before a folder or a cell
     rx = select_receivers(scene, receivers if receivers is not None else default_receivers(scene))
     with outdir.locked(out) if out is not None else contextlib.nullcontext():
         return _measure(scene, techs, ests, n_values, trials, seed, rx, threads, out, progress, runner)
