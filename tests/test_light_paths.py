@@ -20,7 +20,7 @@ import warp as wp
 from test_integrand import CEILING, CEILING_L, FLOOR, _quad, _write_scene
 
 import warpis
-from warpis.kernels.device import ReceiverData, SceneData, planar_emitters, upload
+from warpis.kernels.device import SELF_HIT_SLAB, ReceiverData, SceneData, planar_emitters, upload
 from warpis.kernels.integrand import integrand, integrand_via, shading_point
 from warpis.kernels.techniques import TECHNIQUES, LightTable, light_table, sample_light_point, technique_pdf
 from warpis.scenes import load_scene
@@ -101,13 +101,13 @@ def _blocked_light(tmp_path, gap: float):
 @pytest.mark.parametrize("inside", [True, False])
 def test_geometry_within_the_emitters_slab_is_not_seen_on_either_path(tmp_path, inside):
     """The shadow ray stops where it enters the emitter's self-hit slab (integrand.py):
-    a blocker inside that slab (a quarter of its height below the light) is not seen, one
-    four slab heights below blocks all light, on the light-sample path and on the lookup
-    path alike."""
-    probe = load_scene(_write_scene(tmp_path / "probe", [(*CEILING, CEILING_L)],
-                                    {"points": [[0.0, 0.0, 0.0]], "normal": [0.0, 0.0, 1.0]}))
-    slab = float(upload(probe).data.emitter_slab.numpy()[0])
-    scene = _blocked_light(tmp_path / "scene", gap=slab / 4 if inside else 4 * slab)
+    SELF_HIT_SLAB × the magnitude of the light point y (the light has no bent
+    neighbours).  A blocker inside that slab (a quarter of its least height below the
+    light) is not seen, one four greatest heights below blocks all light, on the
+    light-sample path and on the lookup path alike."""
+    corners = CEILING[0]
+    least, most = SELF_HIT_SLAB * np.abs(corners[:, 2]).min(), SELF_HIT_SLAB * np.abs(corners).max()
+    scene = _blocked_light(tmp_path / "scene", gap=least / 4 if inside else 4 * most)
     assert upload(scene).data.planar_emitters  # the blocker does not emit: the set stays planar
     _, own, _, f_known, f_looked_up = both_paths(scene, "light-area", 0, 4000, seed=3)
     if inside:

@@ -139,15 +139,24 @@ def test_warp_data_mirrors_numpy(bundled_scene):
 
 def test_self_hit_slab_follows_the_coordinates_around_each_receiver(bundled_scene):
     """Each receiver's slab is SELF_HIT_SLAB × the largest coordinate magnitude of the
-    receiver and of the triangles whose bounds hold it (numpy over all triangles against
-    Warp's BVH query): local magnitudes only, no scene size."""
+    receiver and of the triangles that touch it (to SELF_HIT_SLAB × their magnitude)
+    outside its own plane (numpy and trimesh's closest points over all triangles, against
+    the Warp kernel's BVH query): local magnitudes only, no scene size."""
+    import trimesh
+
     s = bundled_scene
-    tris = s.triangle_vertices()
-    lo, hi = tris.min(axis=1), tris.max(axis=1)
-    for r, x in enumerate(s.receivers.positions):
-        reach = np.abs(x).max() * 1e-6 + 1e-30
-        holds = np.all((lo <= x + reach) & (hi >= x - reach), axis=1)
-        scale = max(np.abs(x).max(), np.abs(tris[holds]).max() if holds.any() else 0.0)
+    tris = s.triangle_vertices().astype(np.float32).astype(np.float64)
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    mag = np.abs(tris).max(axis=(1, 2))
+    for r, (x, n) in enumerate(zip(s.receivers.positions.astype(np.float32).astype(np.float64),
+                                   s.receivers.normals.astype(np.float32).astype(np.float64))):
+        m = np.maximum(mag, np.abs(x).max())
+        height = np.abs(np.einsum("ij,ij->i", x - tris[:, 0], normal))
+        own_plane = (np.abs(normal @ n) >= 1 - 1e-6) & (height <= SELF_HIT_SLAB * m)
+        distance = np.linalg.norm(trimesh.triangles.closest_point(tris, np.tile(x, (len(tris), 1))) - x, axis=1)
+        touching = ~own_plane & (distance <= SELF_HIT_SLAB * m)
+        scale = max(np.abs(x).max(), m[touching].max() if touching.any() else 0.0)
         np.testing.assert_allclose(s.slab[r], SELF_HIT_SLAB * scale, rtol=1e-6, err_msg=f"{s.name} receiver {r}")
     np.testing.assert_array_equal(s.receiver_data.slab.numpy(), s.slab.astype(np.float32))
 
@@ -645,10 +654,14 @@ def emitter_targets(scene: warpis.Scene, count: int, seed: int, mesh: int | None
 
 
 def shading_rays(scene: warpis.Scene, receiver: int, targets: np.ndarray):
-    """Rays from just above receiver x (its self-hit slab height δ along n) to ``targets``,
-    rounded to float32 as the kernel sees them, so both casts get the same rays."""
+    """Rays from just above receiver x to ``targets``, rounded to float32 as the kernel
+    sees them, so both casts get the same rays.  The origin is SELF_HIT_SLAB × the
+    scene's largest coordinate along n: clear of the rounding of every triangle, the
+    receiver's own among them, for a query that ignores no plane (the integrand's
+    ignores the receiver's own, bvh.py, and needs a smaller slab)."""
     x, n = scene.receivers.positions[receiver], scene.receivers.normals[receiver]
-    origin = (x + float(scene.slab[receiver]) * n).astype(np.float32).astype(np.float64)
+    height = SELF_HIT_SLAB * max(float(np.abs(x).max()), float(np.abs(scene.vertices).max()))
+    origin = (x + height * n).astype(np.float32).astype(np.float64)
     d = targets - origin
     d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32).astype(np.float64)
     return origin, d

@@ -6,8 +6,9 @@ tests four boxes per node and four triangles per leaf at once, and halves the de
 ``closest_hit`` returns what ``wp.mesh_query_ray`` returns for the integrand's purpose
 (the face hit first and the sign of its facing), ``any_hit`` what
 ``wp.mesh_query_ray_anyhit`` returns (a shadow ray); both fall back to Warp's query where
-their fixed stack would overflow, and on devices where the tree is disabled (CUDA), so no
-ray is ever dropped.
+their fixed stack would overflow, so no ray is ever dropped.  Every device uses the tree:
+rays that leave or reach a surface ignore hits on that surface's own plane (``Ray``),
+which only a leaf test of warpis's own can do.
 
 Layout (one :class:`WideBvh` per scene upload):
 
@@ -43,8 +44,8 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-__all__ = ["LEAF_SIZE", "RayHit", "WideBvh", "WideBvhArrays", "any_hit", "build_wide_bvh", "cache_dir", "cached_wide_bvh",
-           "closest_hit", "upload_wide_bvh"]
+__all__ = ["LEAF_SIZE", "PLANE_TOL", "SELF_HIT", "RayHit", "WideBvh", "WideBvhArrays", "any_hit", "any_hit_between", "build_wide_bvh",
+           "cache_dir", "cached_wide_bvh", "closest_hit", "closest_hit_from", "coplanar", "upload_wide_bvh"]
 
 LEAF_SIZE = 4  # triangles per leaf, tested together
 WIDTH = 4  # children per node
@@ -54,6 +55,19 @@ SAH_BINS = 16
 TRAVERSAL_COST = 1.0
 LEAF_COST = 1.5
 STACK_SIZE = wp.constant(64)
+# How far float32 rounding can move a triangle's plane, relative to the magnitude of its
+# corners' coordinates: 2^-16 is 128 ulps, far above the rounding of the watertight
+# test.  The self-hit slabs of device.py are this factor × local magnitudes.
+SELF_HIT = wp.constant(2.0**-16)
+# A triangle is in the plane of a ray's end point when that point is within this height
+# of its plane, relative to the same magnitudes: 16 ulps.  Rounding puts a point that
+# lies on the triangle within 2 ulps of its float32 plane, and Warp's watertight test
+# reports no hit from 1 ulp above it (measured on triangles of size 1 to 1e6), so the
+# ignored planes are the point's own, and a parallel surface 16 ulps away is not one.
+PLANE_TOL = wp.constant(2.0**-19)
+# Two unit normals are parallel when |n·m| is at least this: float32 rounding of a
+# triangle's corners tilts its normal by ~1e-7; a bend of 0.1° is not parallel.
+PARALLEL = wp.constant(1.0 - 1.0e-6)
 INFINITY = wp.constant(float("inf"))
 NO_NODE = wp.constant(-2147483647)  # an empty stack: no node or leaf has this code
 OVERFLOW = wp.constant(-2)  # a query's answer when its stack would overflow
@@ -70,7 +84,9 @@ class WideBvh:
     children: wp.array(dtype=wp.vec4i)  # 1 per node
     corners: wp.array(dtype=wp.vec4)  # 9 per leaf
     faces: wp.array(dtype=wp.vec4i)  # 1 per leaf
-    enabled: wp.int32  # 0: the kernels use wp.mesh_query_ray (CUDA)
+    enabled: wp.int32  # 0: the kernels use wp.mesh_query_ray (a tree uploaded empty, for tests)
+    points: wp.array(dtype=wp.vec3)  # the mesh's vertices and indices, for the plane test of
+    indices: wp.array(dtype=wp.int32)  # a hit found by Warp's own query (the fallback)
 
 
 @wp.struct
@@ -99,6 +115,16 @@ class Ray:
     sx: float  # its shear constants
     sy: float
     sz: float
+    # The surfaces the ray leaves and reaches (``planes`` = 1): the point ``plane_a`` with
+    # its surface normal ``normal_a`` (the receiver), ``plane_b`` with ``normal_b`` (the
+    # emitter point).  A hit on a triangle of either plane is rounding, never a real
+    # crossing (a ray that starts on a plane meets it nowhere else), and is ignored; so
+    # no slab as tall as the rounding of a huge own triangle is needed.
+    plane_a: wp.vec3
+    normal_a: wp.vec3
+    plane_b: wp.vec3
+    normal_b: wp.vec3
+    planes: wp.int32
 
 
 @wp.func
@@ -107,9 +133,15 @@ def _nonzero(x: float) -> float:
 
 
 @wp.func
-def make_ray(o: wp.vec3, d: wp.vec3) -> Ray:
+def make_ray(o: wp.vec3, d: wp.vec3, plane_a: wp.vec3, normal_a: wp.vec3, plane_b: wp.vec3, normal_b: wp.vec3,
+             planes: wp.int32) -> Ray:
     r = Ray()
     r.o = o
+    r.plane_a = plane_a
+    r.normal_a = normal_a
+    r.plane_b = plane_b
+    r.normal_b = normal_b
+    r.planes = planes
     r.inv = wp.vec3(1.0 / _nonzero(d[0]), 1.0 / _nonzero(d[1]), 1.0 / _nonzero(d[2]))
     r.o_inv = wp.cw_mul(o, r.inv)
     r.near_x = wp.where(r.inv[0] < 0.0, 1, 0)
@@ -210,6 +242,63 @@ def _edges(ax: wp.vec4, ay: wp.vec4, bx: wp.vec4, by: wp.vec4, cx: wp.vec4, cy: 
 
 
 @wp.func
+def _abs_max(v: wp.vec3) -> float:
+    return wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))
+
+
+@wp.func
+def _vec64(v: wp.vec3) -> wp.vec3d:
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+
+@wp.func
+def coplanar(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, q: wp.vec3, m: wp.vec3) -> bool:
+    """Whether the triangle (p0, p1, p2) lies in the plane through ``q`` with unit normal
+    ``m``, to within float32's rounding: its normal parallel to m (``PARALLEL``) and
+    |n̂·(q − p0)| ≤ PLANE_TOL × the largest coordinate magnitude of the corners and of q
+    (in float64, where the differences of float32 values are exact)."""
+    a = _vec64(p0)
+    n = wp.cross(_vec64(p1) - a, _vec64(p2) - a)
+    nn = wp.dot(n, n)
+    along = wp.dot(n, _vec64(m))
+    if along * along < wp.float64(PARALLEL * PARALLEL) * nn:
+        return False
+    h = wp.dot(n, _vec64(q) - a)
+    mag = wp.max(wp.max(_abs_max(p0), _abs_max(p1)), wp.max(_abs_max(p2), _abs_max(q)))
+    tol = wp.float64(mag) * wp.float64(PLANE_TOL)
+    return h * h <= tol * tol * nn
+
+
+@wp.func
+def _ignored(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, r: Ray) -> bool:
+    """Whether a hit on the triangle is one the ray ignores (see ``Ray.plane_a``)."""
+    if r.planes == 0:
+        return False
+    return coplanar(p0, p1, p2, r.plane_a, r.normal_a) or coplanar(p0, p1, p2, r.plane_b, r.normal_b)
+
+
+@wp.func
+def _leaf_ignores(bvh: WideBvh, leaf: wp.int32, i: wp.int32, r: Ray) -> bool:
+    """_ignored for triangle ``i`` of a leaf (read only for a hit: rare)."""
+    if r.planes == 0:
+        return False
+    base = leaf * 9
+    p0 = wp.vec3(bvh.corners[base][i], bvh.corners[base + 1][i], bvh.corners[base + 2][i])
+    p1 = wp.vec3(bvh.corners[base + 3][i], bvh.corners[base + 4][i], bvh.corners[base + 5][i])
+    p2 = wp.vec3(bvh.corners[base + 6][i], bvh.corners[base + 7][i], bvh.corners[base + 8][i])
+    return _ignored(p0, p1, p2, r)
+
+
+@wp.func
+def _face_ignored(bvh: WideBvh, face: wp.int32, r: Ray) -> bool:
+    """_ignored for a mesh face (a hit of Warp's own query)."""
+    if r.planes == 0:
+        return False
+    return _ignored(bvh.points[bvh.indices[3 * face]], bvh.points[bvh.indices[3 * face + 1]],
+                    bvh.points[bvh.indices[3 * face + 2]], r)
+
+
+@wp.func
 def _leaf_hit(bvh: WideBvh, leaf: wp.int32, r: Ray, best: RayHit) -> RayHit:
     """``best``, replaced by the nearest of the leaf's triangles the ray hits before it."""
     ax, ay, az, bx, by, bz, cx, cy, cz = _sheared(bvh, leaf, r)
@@ -221,7 +310,7 @@ def _leaf_hit(bvh: WideBvh, leaf: wp.int32, r: Ray, best: RayHit) -> RayHit:
         det = e[0] + e[1] + e[2]
         if inside and det != 0.0 and faces[i] >= 0:
             t = r.sz * (e[0] * az[i] + e[1] * bz[i] + e[2] * cz[i]) / det
-            if t >= 0.0 and t < out.t:
+            if t >= 0.0 and t < out.t and not _leaf_ignores(bvh, leaf, i, r):
                 out.face = faces[i]
                 out.t = t
                 out.sign = det
@@ -241,7 +330,8 @@ def _leaf_blocks(bvh: WideBvh, leaf: wp.int32, r: Ray, t_max: float) -> bool:
         # 0 ≤ t = T/det < t_max: T and det of one sign, |T| < t_max·|det|.
         signed_t = wp.where(det < 0.0, -big_t, big_t)
         if inside and det != 0.0 and faces[i] >= 0 and signed_t >= 0.0 and signed_t < t_max * wp.abs(det):
-            return True
+            if not _leaf_ignores(bvh, leaf, i, r):
+                return True
     return False
 
 
@@ -330,35 +420,90 @@ def _wide_any(bvh: WideBvh, r: Ray, t_max: float) -> wp.int32:
     return 0
 
 
+# Steps of the fallback past hits the ray ignores (see _warp_closest).
+IGNORED_STEPS = 64
+
+
 @wp.func
-def closest_hit(bvh: WideBvh, mesh: wp.uint64, o: wp.vec3, d: wp.vec3, t_max: float) -> RayHit:
-    """The first triangle the ray o + t·d, 0 ≤ t < t_max, hits (face −1 if none): through
-    the wide BVH, or Warp's ``mesh_query_ray`` where it is disabled (CUDA) or too deep."""
-    if bvh.enabled != 0:
-        hit = _wide_closest(bvh, make_ray(o, d), t_max)
-        if hit.face != OVERFLOW:
-            return hit
+def _warp_closest(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float) -> RayHit:
+    """Warp's ``mesh_query_ray``, stepped past the hits the ray ignores: after an ignored
+    hit at distance t it starts again at t·(1 + 2^-10), at most IGNORED_STEPS times.
+
+    Only a tree deeper than the stack comes here (the wide BVH filters in its leaf test,
+    exactly).  Warp's query cannot skip a face, so this is exact where the ignored plane's
+    rounding zone is thin beside the distances to other geometry; it is not for a
+    receiver on a 1e6-sized tilted triangle under a light 0.05 away."""
     hit = RayHit()
     hit.face = -1
     hit.t = t_max
     hit.sign = 0.0
-    q = wp.mesh_query_ray(mesh, o, d, t_max)
-    if q.result:
-        hit.face = q.face
-        hit.t = q.t
-        hit.sign = q.sign
+    start = float(0.0)
+    for _step in range(IGNORED_STEPS):
+        q = wp.mesh_query_ray(mesh, r.o + start * d, d, t_max - start)
+        if not q.result:
+            return hit
+        if not _face_ignored(bvh, q.face, r):
+            hit.face = q.face
+            hit.t = start + q.t
+            hit.sign = q.sign
+            return hit
+        start = (start + q.t) * (1.0 + 1.0 / 1024.0) + 1.0e-30
+        if start >= t_max:
+            return hit
     return hit
+
+
+@wp.func
+def _closest(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float) -> RayHit:
+    if bvh.enabled != 0:
+        hit = _wide_closest(bvh, r, t_max)
+        if hit.face != OVERFLOW:
+            return hit
+    return _warp_closest(bvh, mesh, r, d, t_max)
+
+
+@wp.func
+def _any(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float) -> bool:
+    if bvh.enabled != 0:
+        found = _wide_any(bvh, r, t_max)
+        if found != OVERFLOW:
+            return found == 1
+    if not wp.mesh_query_ray_anyhit(mesh, r.o, d, t_max):
+        return False
+    if r.planes == 0:
+        return True
+    return _warp_closest(bvh, mesh, r, d, t_max).face >= 0  # the hit may be an ignored one
+
+
+@wp.func
+def closest_hit(bvh: WideBvh, mesh: wp.uint64, o: wp.vec3, d: wp.vec3, t_max: float) -> RayHit:
+    """The first triangle the ray o + t·d, 0 ≤ t < t_max, hits (face −1 if none): through
+    the wide BVH, or Warp's ``mesh_query_ray`` where it is disabled or too deep."""
+    return _closest(bvh, mesh, make_ray(o, d, o, d, o, d, 0), d, t_max)
 
 
 @wp.func
 def any_hit(bvh: WideBvh, mesh: wp.uint64, o: wp.vec3, d: wp.vec3, t_max: float) -> bool:
     """Whether the ray o + t·d meets any triangle at 0 ≤ t < t_max (a shadow ray): through
     the wide BVH, or Warp's ``mesh_query_ray_anyhit`` where it is disabled or too deep."""
-    if bvh.enabled != 0:
-        found = _wide_any(bvh, make_ray(o, d), t_max)
-        if found != OVERFLOW:
-            return found == 1
-    return wp.mesh_query_ray_anyhit(mesh, o, d, t_max)
+    return _any(bvh, mesh, make_ray(o, d, o, d, o, d, 0), d, t_max)
+
+
+@wp.func
+def closest_hit_from(bvh: WideBvh, mesh: wp.uint64, x: wp.vec3, nx: wp.vec3, o: wp.vec3, d: wp.vec3,
+                     t_max: float) -> RayHit:
+    """closest_hit for a ray that leaves the surface point ``x`` of unit normal ``nx`` (o
+    is on the ray beyond x): hits on triangles of x's plane are rounding, and are ignored."""
+    return _closest(bvh, mesh, make_ray(o, d, x, nx, x, nx, 1), d, t_max)
+
+
+@wp.func
+def any_hit_between(bvh: WideBvh, mesh: wp.uint64, x: wp.vec3, nx: wp.vec3, y: wp.vec3, ny: wp.vec3, o: wp.vec3,
+                    d: wp.vec3, t_max: float) -> bool:
+    """any_hit for a shadow ray from the surface point ``x`` (unit normal ``nx``) to the
+    surface point ``y`` (unit normal ``ny``), along o + t·d, 0 ≤ t < t_max, between them:
+    hits on triangles of x's plane or of y's are rounding, and are ignored."""
+    return _any(bvh, mesh, make_ray(o, d, x, nx, y, ny, 1), d, t_max)
 
 
 # --------------------------------------------------------------------------- build
@@ -659,10 +804,13 @@ def _fits(built: WideBvhArrays, corners: np.ndarray) -> bool:
         and bool(np.all(built.children >= -leaves))
 
 
-def upload_wide_bvh(built: WideBvhArrays | None) -> WideBvh:
-    """The :class:`WideBvh` struct of ``built`` on the current device; ``None`` gives a
-    disabled one (the kernels then use ``wp.mesh_query_ray``)."""
+def upload_wide_bvh(built: WideBvhArrays | None, points: wp.array, indices: wp.array) -> WideBvh:
+    """The :class:`WideBvh` struct of ``built`` on the current device, over the mesh of
+    ``points`` and ``indices`` (Warp arrays); ``None`` gives a disabled one (the kernels
+    then use ``wp.mesh_query_ray``)."""
     b = WideBvh()
+    b.points = points
+    b.indices = indices
     if built is None:
         built = WideBvhArrays(np.zeros((6, 4), np.float32), np.zeros((1, 4), np.int32),
                               np.zeros((9, 4), np.float32), np.full((1, 4), -1, np.int32), 0)

@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import WarpisError
-from .bvh import WideBvh, cached_wide_bvh, upload_wide_bvh
+from .bvh import PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, upload_wide_bvh
 
 if TYPE_CHECKING:
     from ..scenes import Scene
@@ -36,9 +36,10 @@ T = TypeVar("T")
 
 # Self-hit slab, relative to the float32 magnitude of the coordinates around a receiver:
 # rays ignore surfaces within this height above the receiver's tangent plane (see
-# integrand.py).  2^-16 is 128 float32 ulps: far above the rounding of Warp's watertight
-# ray-triangle test, and second order in F (docs/theory.md, "The integrand at a receiver").
-SELF_HIT_SLAB = 2.0**-16
+# integrand.py), and hits on triangles in a plane through the receiver (bvh.py).  2^-16
+# is 128 float32 ulps: far above the rounding of Warp's watertight ray-triangle test,
+# and second order in F (docs/theory.md, "The integrand at a receiver").
+SELF_HIT_SLAB = float(SELF_HIT)
 # Uploads kept: more than the scenes of any study (a study's cells run scene by scene, so
 # a larger study only rebuilds on revisits), few enough that a process looping over many
 # generated scenes does not keep every mesh alive.
@@ -79,7 +80,8 @@ class ReceiverData:
     """Receiver points, normals and the material of each."""
 
     position: wp.array(dtype=wp.vec3)
-    normal: wp.array(dtype=wp.vec3)
+    normal: wp.array(dtype=wp.vec3)  # the shading normal: the BSDF's frame and cosine
+    geometric: wp.array(dtype=wp.vec3)  # the surface's own normal: rays, planes and slab
     material: wp.array(dtype=wp.int32)  # vocabulary.MATERIALS code
     albedo: wp.array(dtype=wp.float32)
     exponent: wp.array(dtype=wp.float32)
@@ -174,26 +176,125 @@ def _cdf(weights: np.ndarray) -> np.ndarray:
     return c.astype(np.float32)
 
 
+@wp.func
+def _vec64(v: wp.vec3) -> wp.vec3d:
+    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
+
+
+@wp.func
+def triangle_distance(x: wp.vec3, p0: wp.vec3, p1: wp.vec3, p2: wp.vec3) -> float:
+    """Distance from ``x`` to the triangle (p0, p1, p2), in float64 (Ericson 2005, 5.1.5:
+    the closest point by the Voronoi region of x)."""
+    p = _vec64(x)
+    a = _vec64(p0)
+    ab = _vec64(p1) - a
+    ac = _vec64(p2) - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    closest = a
+    if d1 <= wp.float64(0.0) and d2 <= wp.float64(0.0):
+        return float(wp.length(p - closest))
+    bp = p - _vec64(p1)
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= wp.float64(0.0) and d4 <= d3:
+        return float(wp.length(p - _vec64(p1)))
+    vc = d1 * d4 - d3 * d2
+    if vc <= wp.float64(0.0) and d1 >= wp.float64(0.0) and d3 <= wp.float64(0.0):
+        return float(wp.length(p - (a + (d1 / (d1 - d3)) * ab)))
+    cp = p - _vec64(p2)
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= wp.float64(0.0) and d5 <= d6:
+        return float(wp.length(p - _vec64(p2)))
+    vb = d5 * d2 - d1 * d6
+    if vb <= wp.float64(0.0) and d2 >= wp.float64(0.0) and d6 <= wp.float64(0.0):
+        return float(wp.length(p - (a + (d2 / (d2 - d6)) * ac)))
+    va = d3 * d6 - d5 * d4
+    if va <= wp.float64(0.0) and (d4 - d3) >= wp.float64(0.0) and (d5 - d6) >= wp.float64(0.0):
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return float(wp.length(p - (_vec64(p1) + w * (_vec64(p2) - _vec64(p1)))))
+    denom = wp.float64(1.0) / (va + vb + vc)
+    closest = a + (vb * denom) * ab + (vc * denom) * ac
+    return float(wp.length(p - closest))
+
+
+@wp.func
+def _magnitude(v: wp.vec3) -> float:
+    return wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))
+
+
+FLOAT32_ULPS_4 = wp.constant(4.0 * 2.0**-24)  # 4 float32 ulps, relative
+
+
+@wp.func
+def _off_plane(points64: wp.array(dtype=wp.vec3d), indices: wp.array(dtype=wp.int32), face: wp.int32,
+               x: wp.vec3d, mag: float) -> bool:
+    """Whether x lies more than 4 float32 ulps of ``mag`` off the plane of triangle
+    ``face`` in the scene's own float64 coordinates (float32 rounding alone puts it 2 off)."""
+    a = points64[indices[face * 3]]
+    n = wp.cross(points64[indices[face * 3 + 1]] - a, points64[indices[face * 3 + 2]] - a)
+    h = wp.dot(n, x - a)
+    tol = wp.float64(mag) * wp.float64(FLOAT32_ULPS_4)
+    return h * h > tol * tol * wp.dot(n, n)
+
+
 @wp.kernel(enable_backward=False)
 def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
-                 position: wp.array(dtype=wp.vec3), slab: wp.array(dtype=wp.float32)):
-    """Slab height of each receiver: SELF_HIT_SLAB × the largest coordinate magnitude of
-    the receiver and of every triangle whose bounds hold it (its own surface among them).
+                 points64: wp.array(dtype=wp.vec3d), reach: float, position: wp.array(dtype=wp.vec3),
+                 position64: wp.array(dtype=wp.vec3d), normal: wp.array(dtype=wp.vec3),
+                 slab: wp.array(dtype=wp.float32), hidden: wp.array(dtype=wp.int32)):
+    """Slab height of each receiver x: SELF_HIT × the largest coordinate magnitude of x and
+    of every triangle at x (within PLANE_TOL × its magnitude: float32's resolution
+    there), leaving out the triangles of x's own plane (through x, normal parallel to
+    x's), whose hits the rays ignore (bvh.py): so a huge floor under x costs no slab,
+    only a huge surface that bends away from x does.
+
+    ``hidden``: −1, or 3 × a triangle + why it leaves no safe slab: (0) one at x to float32's
+    resolution but not through x (farther than x's own slab), so rays cannot tell which
+    side of it they leave; (1) one of x's own plane for the rays although, in the scene's
+    float64 coordinates, x lies off it (a parallel surface nearer than float32
+    resolves); or (2) one nearer to x than the slab and not at x (the slab would hide it).
 
     Warp's watertight ray test works on vertex − origin differences, so its rounding
     scales with those magnitudes; the slab follows them and nothing else (no scene size).
+    ``reach`` (PLANE_TOL × the largest magnitude in the scene) bounds every triangle's
+    resolution, so the box query finds each triangle that can be at x.
     """
     r = wp.tid()
     x = position[r]
-    scale = wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))
-    reach = scale * 1.0e-6 + 1.0e-30
+    nx = normal[r]
+    own = _magnitude(x)
+    scale = own
+    hidden[r] = -1
     query = wp.mesh_query_aabb(mesh, x - wp.vec3(reach), x + wp.vec3(reach))
     face = wp.int32(0)
     while wp.mesh_query_aabb_next(query, face):
-        for j in range(3):
-            v = points[indices[face * 3 + j]]
-            scale = wp.max(scale, wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2])))
-    slab[r] = scale * SELF_HIT_SLAB
+        p0 = points[indices[face * 3]]
+        p1 = points[indices[face * 3 + 1]]
+        p2 = points[indices[face * 3 + 2]]
+        mag = wp.max(wp.max(_magnitude(p0), _magnitude(p1)), wp.max(_magnitude(p2), own))
+        dist = triangle_distance(x, p0, p1, p2)
+        if dist <= mag * PLANE_TOL:  # a surface at x, to float32's resolution there
+            if not coplanar(p0, p1, p2, x, nx):
+                scale = wp.max(scale, mag)
+                if dist > own * SELF_HIT:  # near x but not through it: its side is lost
+                    hidden[r] = 3 * face
+            elif _off_plane(points64, indices, face, position64[r], mag):
+                hidden[r] = 3 * face + 1  # a parallel surface the rays would take for x's own plane
+    delta = scale * SELF_HIT
+    if scale > own and hidden[r] < 0:  # a surface coarser than x's own coordinates sets the slab
+        near = wp.mesh_query_aabb(mesh, x - wp.vec3(delta), x + wp.vec3(delta))
+        while wp.mesh_query_aabb_next(near, face):
+            p0 = points[indices[face * 3]]
+            p1 = points[indices[face * 3 + 1]]
+            p2 = points[indices[face * 3 + 2]]
+            mag = wp.max(wp.max(_magnitude(p0), _magnitude(p1)), wp.max(_magnitude(p2), own))
+            dist = triangle_distance(x, p0, p1, p2)
+            if dist > mag * PLANE_TOL and dist < delta and not coplanar(p0, p1, p2, x, nx):
+                hidden[r] = 3 * face + 2  # what the slab would hide
+    slab[r] = delta
 
 
 def planar_emitters(corners: np.ndarray) -> bool:
@@ -220,6 +321,31 @@ def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lo, hi = corners.min(axis=1), corners.max(axis=1)
     pad = 1e-4 * (hi - lo).max(axis=1) + 2.0**-14 * np.abs(corners).max(axis=(1, 2))
     return (lo - pad[:, None]).astype(np.float32), (hi + pad[:, None]).astype(np.float32)
+
+
+def emitter_slabs(scene: Scene) -> np.ndarray:
+    """(E,) float32: the self-hit slab at the emitter end of a shadow ray for each emitter
+    triangle k, SELF_HIT × the largest coordinate magnitude of the triangles that share a
+    vertex with k and bend away from its plane.  Triangles in k's plane need none: the
+    shadow ray ignores hits in a plane through its end point (bvh.py), and the end point's
+    own magnitude enters at run time (integrand.py)."""
+    from scipy.sparse import csr_matrix
+
+    corners = scene.triangle_vertices().astype(np.float32).astype(np.float64)  # (T, 3, 3)
+    count, emitters = len(scene.triangles), scene.emitters
+    rows = np.repeat(np.arange(count), 3)
+    incidence = csr_matrix((np.ones(3 * count), (rows, scene.triangles.ravel())),
+                           shape=(count, len(scene.vertices)))
+    pairs = (incidence[emitters] @ incidence.T).tocoo()  # (emitter k, triangle j) sharing a vertex
+    k, j = pairs.row, pairs.col
+    normal = np.cross(corners[j, 1] - corners[j, 0], corners[j, 2] - corners[j, 0])
+    height = np.einsum("pj,pcj->pc", normal, corners[emitters[k]] - corners[j, :1])  # k's corners over j's plane
+    magnitude = np.abs(corners).max(axis=(1, 2))
+    tol = SELF_HIT_SLAB * magnitude[j] * np.linalg.norm(normal, axis=1)
+    bends = (np.abs(height) > tol[:, None]).any(axis=1)
+    out = np.zeros(len(emitters))
+    np.maximum.at(out, k[bends], SELF_HIT_SLAB * magnitude[j[bends]])
+    return out.astype(np.float32)
 
 
 def plastic_rows(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
@@ -251,9 +377,9 @@ def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, 
     lower_all, upper_all = (lower.min(axis=0), upper.max(axis=0)) if len(lower) else (np.zeros(3), np.zeros(3))
     d = SceneData()
     d.mesh = mesh.id
-    on_cpu = wp.get_device().is_cpu
-    # The CPU's ray queries walk warpis's 4-wide BVH; CUDA keeps Warp's own (bvh.py).
-    d.bvh = upload_wide_bvh(cached_wide_bvh(scene.vertices, scene.triangles, scene.emitters) if on_cpu else None)
+    # Every device's ray queries walk warpis's 4-wide BVH: its leaf test ignores the hits
+    # on a ray's own planes, which Warp's queries cannot (bvh.py).
+    d.bvh = upload_wide_bvh(cached_wide_bvh(scene.vertices, scene.triangles, scene.emitters), points, indices)
     d.emitter_bvh = emitter_bvh.id
     d.points = points
     d.indices = indices
@@ -264,10 +390,7 @@ def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, 
     normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     d.emitter_normal = wp.array(normals.astype(np.float32), dtype=wp.vec3)
-    # A point of the triangle is a convex combination of its corners: no coordinate of it
-    # exceeds the corners' largest magnitude, so the slab of that magnitude holds anywhere.
-    d.emitter_slab = wp.array((np.abs(corners).max(axis=(1, 2)) * SELF_HIT_SLAB).astype(np.float32),
-                              dtype=wp.float32)
+    d.emitter_slab = wp.array(emitter_slabs(scene), dtype=wp.float32)
     d.area_cdf = wp.array(_cdf(scene.emitter_areas), dtype=wp.float32)
     d.power_cdf = wp.array(_cdf(scene.emitter_areas * scene.emitter_radiance), dtype=wp.float32)
     d.total_area = float(scene.total_emitter_area)
@@ -286,6 +409,7 @@ def _receiver_data(scene: Scene, d: Any, plastic_row: np.ndarray) -> Any:
     rd = ReceiverData()
     rd.position = wp.array(r.positions.astype(np.float32), dtype=wp.vec3)
     rd.normal = wp.array(r.normals.astype(np.float32), dtype=wp.vec3)
+    rd.geometric = wp.array(r.geometric_normals.astype(np.float32), dtype=wp.vec3)
     rd.material = wp.array(r.material.astype(np.int32), dtype=wp.int32)
     rd.albedo = wp.array(r.albedo.astype(np.float32), dtype=wp.float32)
     rd.exponent = wp.array(r.exponent.astype(np.float32), dtype=wp.float32)
@@ -299,8 +423,36 @@ def _receiver_data(scene: Scene, d: Any, plastic_row: np.ndarray) -> Any:
     rd.specular = wp.array(r.specular.astype(np.float32), dtype=wp.vec3)
     rd.specular_weight = wp.array(r.specular_weight.astype(np.float32), dtype=wp.float32)
     rd.plastic_row = wp.array(plastic_row, dtype=wp.int32)
-    wp.launch(_slab_kernel, dim=len(r), inputs=[d.mesh, d.points, d.indices, rd.position, rd.slab])
+    hidden = wp.zeros(len(r), dtype=wp.int32)
+    reach = PLANE_TOL * float(np.abs(scene.vertices.astype(np.float32)).max(initial=0.0)) + 1.0e-30
+    points64 = wp.array(scene.vertices.astype(np.float64), dtype=wp.vec3d)
+    position64 = wp.array(r.positions.astype(np.float64), dtype=wp.vec3d)
+    wp.launch(_slab_kernel, dim=len(r), inputs=[d.mesh, d.points, d.indices, points64, reach, rd.position, position64,
+                                                rd.geometric, rd.slab, hidden])
+    _refuse_hidden(scene, hidden.numpy(), rd.slab.numpy())
     return rd
+
+
+def _refuse_hidden(scene: Scene, hidden: np.ndarray, slab: np.ndarray) -> None:
+    """A receiver that no float32 slab keeps safe (``_slab_kernel``'s ``hidden``): one line."""
+    bad = np.flatnonzero(hidden >= 0)
+    if len(bad) == 0:
+        return
+    r, (face, why) = int(bad[0]), divmod(int(hidden[bad[0]]), 3)
+    x = scene.receivers.positions[r]
+    tri = scene.triangle_vertices(np.array([face]))[0].astype(np.float32).astype(np.float64)  # as the rays see it
+    normal = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+    height = abs(float((x - tri[0]) @ normal)) / float(np.linalg.norm(normal))
+    which = f"triangle {face} (mesh {scene.mesh_names[scene.triangle_mesh[face]]!r})"
+    problem = (f"lies {height:.3g} from the plane of {which}, nearer than float32 resolves at its coordinates (up "
+               f"to {np.abs(tri).max():.3g}), so rays cannot tell which side of it they leave",
+               f"lies {height:.3g} off the plane of {which}, a parallel surface nearer than float32 resolves at its "
+               f"coordinates (up to {np.abs(tri).max():.3g}), which rays would take for the receiver's own",
+               f"touches a surface so large that float32 rays must skip {slab[r]:.3g} above it, which would hide "
+               f"{which}, {height:.3g} away")[why]
+    more = f"; {len(bad) - 1} more receiver(s) too" if len(bad) > 1 else ""
+    raise WarpisError(f"scene {scene.name!r}: receiver {r} at ({x[0]:.6g}, {x[1]:.6g}, {x[2]:.6g}) {problem}{more}: "
+                      f"put the receiver on that surface or farther from it, or split the large triangles")
 
 
 def _build(scene: Scene, device: str) -> DeviceScene:

@@ -18,14 +18,23 @@ point it sampled) and casts only the shadow ray.
 
 Ray ends: warpis integrates F at the receiver x itself.  Sampling, pdfs and f all
 refer to directions from x.  Receivers sit exactly on their surface, and a ray from x
-could hit the surface it starts on, so the segment starts at x + (δ / n·ω)·ω: the same
-ray, with the part below height δ over the receiver's tangent plane skipped, δ = the
-receiver's self-hit slab (``SELF_HIT_SLAB`` × the float32 magnitude of the coordinates
-around x, see device.py).  Emitter crossings within that slab are not seen either.  At
-the other end the segment stops where it enters the emitter's own slab (δ_y / |cos θ_y|
-before the crossing y, δ_y from the magnitudes around y), so the emitter cannot block
-its own light.  Nothing depends on the scene's size: scaling a scene, or adding a huge
-floor far away, leaves F unchanged.  Only geometry inside those slabs is ignored, which
+could hit the surface it starts on.  Two rules keep it off:
+
+* A hit on a triangle whose plane holds x (to float32 rounding) is ignored (bvh.py): a
+  ray that starts on a plane crosses it nowhere else, so such a hit is always rounding.
+  The receiver's own triangle, its coplanar neighbours and a huge floor under it are
+  never hit, however large their coordinates.
+* The segment starts at x + (δ / n·ω)·ω: the part below height δ over the receiver's
+  tangent plane is skipped, δ = the receiver's self-hit slab, ``SELF_HIT_SLAB`` × the
+  float32 magnitude of x and of the triangles that touch x but bend away from its plane
+  (device.py).  Emitter crossings within that slab are not seen either.  Where a huge
+  bent surface would make δ hide real geometry, the upload refuses the receiver.
+
+At the other end the same two rules hold for the emitter point y: hits in a plane
+through y are ignored, and the segment stops δ_y / |cos θ_y| before y, δ_y from the
+magnitudes of y and of the emitter's bent neighbours, so the emitter cannot block its
+own light.  Nothing depends on the scene's size: scaling a scene, or adding a huge
+floor beneath, leaves F unchanged.  Only geometry inside those slabs is ignored, which
 changes F by a second-order amount (docs/theory.md, "The integrand at a receiver").
 """
 
@@ -37,7 +46,7 @@ import numpy as np
 import warp as wp
 
 from ..vocabulary import Material, Registry
-from .bvh import any_hit, closest_hit
+from .bvh import SELF_HIT, any_hit_between, closest_hit_from
 from .device import ReceiverData, SceneData, upload
 from .emitters import nearest_emitter
 from .microfacet import conductor_brdf, plastic_brdf
@@ -110,6 +119,7 @@ def shading_point(scene: SceneData, recv: ReceiverData, r: wp.int32) -> ShadingP
     sp.receiver = r
     sp.p = recv.position[r]
     sp.n = n
+    sp.ng = recv.geometric[r]
     sp.slab = recv.slab[r]
     sp.material = recv.material[r]
     sp.albedo = recv.albedo[r]
@@ -145,28 +155,33 @@ def brdf(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
 
 
 @wp.func
-def radiance_unless_blocked(scene: SceneData, p: wp.vec3, w: wp.vec3, lead: float, k: wp.int32, t: float) -> float:
+def radiance_unless_blocked(scene: SceneData, p: wp.vec3, n: wp.vec3, w: wp.vec3, lead: float, k: wp.int32,
+                            t: float) -> float:
     """Le of emitter triangle k, which the ray (p, ω) crosses at distance t before any other
     emitter, unless another triangle blocks the way: one shadow ray (an any-hit query)
     from where the ray leaves the receiver's slab (``lead``) to where it enters the
     emitter's own slab (see the module docstring)."""
     cos_y = wp.abs(wp.dot(scene.emitter_normal[k], w))
-    tail = scene.emitter_slab[k] / wp.max(cos_y, 1.0e-12)
+    y = p + t * w
+    y_slab = SELF_HIT * wp.max(wp.max(wp.abs(y[0]), wp.abs(y[1])), wp.abs(y[2]))
+    tail = wp.max(scene.emitter_slab[k], y_slab) / wp.max(cos_y, 1.0e-12)
     length = t - lead - tail
-    if length > 0.0 and any_hit(scene.bvh, scene.mesh, p + lead * w, w, length):
+    # Hits in a plane through p or y (the receiver's own surface, the emitter's) are rounding.
+    if length > 0.0 and any_hit_between(scene.bvh, scene.mesh, p, n, y, scene.emitter_normal[k], p + lead * w, w,
+                                         length):
         return 0.0
     return scene.tri_emission[scene.emitter_tri[k]]
 
 
 @wp.func
-def radiance_beyond(scene: SceneData, p: wp.vec3, w: wp.vec3, lead: float) -> float:
+def radiance_beyond(scene: SceneData, p: wp.vec3, n: wp.vec3, w: wp.vec3, lead: float) -> float:
     """Le of the first surface the ray (p, ω) hits beyond distance ``lead``: the front-face
     radiance of the nearest emitter it crosses there, unless something blocks the way;
     0 when it crosses no emitter or the nearest one's back face (emission is one-sided)."""
     hit = nearest_emitter(scene, p, w, lead)
     if hit.k < 0 or hit.front == 0:
         return 0.0
-    return radiance_unless_blocked(scene, p, w, lead, hit.k, hit.t)
+    return radiance_unless_blocked(scene, p, n, w, lead, hit.k, hit.t)
 
 
 @wp.func
@@ -178,14 +193,16 @@ def incident_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
     for sphere lights and emitters in several planes costs less than finding the nearest
     crossing among many emitter triangles first."""
     if scene.planar_emitters != 0:
-        return radiance_beyond(scene, p, w, 0.0)
-    return closest_radiance(scene, p, w)
+        return radiance_beyond(scene, p, wp.vec3(0.0), w, 0.0)  # p is on no surface: no plane of its own
+    return closest_radiance(scene, p, wp.vec3(0.0), w, 0.0)
 
 
 @wp.func
-def closest_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
-    """Le of the first surface the ray (p, ω) hits, from one closest-hit query."""
-    hit = closest_hit(scene.bvh, scene.mesh, p, w, FAR)
+def closest_radiance(scene: SceneData, p: wp.vec3, n: wp.vec3, w: wp.vec3, lead: float) -> float:
+    """Le of the first surface the ray (p, ω) hits beyond distance ``lead``, from one
+    closest-hit query (hits on the plane through p of normal n are rounding, and are
+    ignored; n = 0 for a p on no surface)."""
+    hit = closest_hit_from(scene.bvh, scene.mesh, p, n, p + lead * w, w, FAR)
     if hit.face < 0 or hit.sign <= 0.0:  # a miss, or a back face: emission is one-sided
         return 0.0
     return scene.tri_emission[hit.face]
@@ -200,8 +217,10 @@ def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int3
     cos_n = wp.dot(sp.n, w)
     if cos_n <= 0.0:
         return 0.0
-    # Geometry within the receiver's slab is not seen (see the module docstring).
-    lead = sp.slab / cos_n
+    # Geometry within the receiver's slab is not seen (see the module docstring).  The slab
+    # lies along the surface's own normal, which a shading normal may tilt from: a ray may
+    # leave through the back of the surface, as in Mitsuba, and its height is |ng·ω|.
+    lead = sp.slab / wp.max(wp.abs(wp.dot(sp.ng, w)), 1.0e-12)
     microfacet = sp.material == ROUGHCONDUCTOR or sp.material == ROUGHPLASTIC
     rho = float(1.0)
     if not microfacet:
@@ -213,7 +232,7 @@ def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int3
     # in several places.
     le = float(0.0)
     if known < 0 and scene.planar_emitters == 0:
-        le = closest_radiance(scene, sp.p + lead * w, w)
+        le = closest_radiance(scene, sp.p, sp.ng, w, lead)
     else:
         k = known
         t = known_t
@@ -223,7 +242,7 @@ def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int3
             t = hit.t
         # Light arrives from the front face of an emitter beyond the slab: one-sided emission.
         if k >= 0 and t > lead and wp.dot(scene.emitter_normal[k], w) < 0.0:
-            le = radiance_unless_blocked(scene, sp.p, w, lead, k, t)
+            le = radiance_unless_blocked(scene, sp.p, sp.ng, w, lead, k, t)
     if le == 0.0:
         return 0.0
     if microfacet:

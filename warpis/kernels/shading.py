@@ -29,7 +29,8 @@ class ShadingPoint:
 
     receiver: wp.int32
     p: wp.vec3  # the receiver x: every direction is from here
-    n: wp.vec3
+    n: wp.vec3  # the shading normal: the BSDF's frame and its cosine
+    ng: wp.vec3  # the surface's own normal: the side rays leave from, its plane, the slab
     slab: float  # self-hit slab height above the tangent plane
     material: wp.int32
     albedo: float  # lambert/phong albedo; roughplastic's diffuse reflectance

@@ -26,6 +26,7 @@ import numpy as np
 from .. import limits
 from ..errors import WarpisError, fail
 from ..kernels.camera import first_hits
+from .normals import interpolate_normals
 
 # What a pixel sees (ImageLayout.seen).
 PIXEL_RECEIVER, PIXEL_NOTHING, PIXEL_EMITTER, PIXEL_BACK = 0, 1, 2, 3
@@ -166,16 +167,22 @@ class CameraHits:
     """Receivers of a camera as arrays: positions, normals, views, the mesh of each, and the layout."""
 
     positions: np.ndarray
-    normals: np.ndarray
+    normals: np.ndarray  # shading normals, towards the camera
     view: np.ndarray
     mesh: np.ndarray
     layout: ImageLayout
     notes: tuple[str, ...]
+    geometric_normals: np.ndarray | None = None  # the triangles' own, on the same side; None: ``normals``
 
 
 def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
-                owner: np.ndarray, two_sided: Sequence[bool], device: str) -> CameraHits:
-    """Cast the camera's primary rays; the receivers they find and what each pixel sees."""
+                owner: np.ndarray, two_sided: Sequence[bool], device: str,
+                corner_normals: np.ndarray | None = None) -> CameraHits:
+    """Cast the camera's primary rays; the receivers they find and what each pixel sees.
+
+    ``corner_normals`` (T, 3, 3), where given, are the vertex normals at each triangle's
+    corners (its own normal, three times, for a flat one): the receivers then shade with
+    their interpolation, and a one-sided surface's back is judged by it, as in Mitsuba."""
     directions = camera.directions()
     face = first_hits(vertices, triangles, camera.position, directions, device)
     seen = np.full(len(face), PIXEL_NOTHING, np.int8)
@@ -195,17 +202,26 @@ def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emi
     if not solid.all():
         notes.append(f"{int((~solid).sum())} pixel(s) meet a triangle edge-on or one of zero area: masked as "
                      f"seeing nothing")
+    shade = n
+    if corner_normals is not None:
+        shade = interpolate_normals(corner_normals[tri], v, camera.position + t[:, None] * d)
+        cancelled = ~np.isfinite(shade).all(axis=1)
+        shade[cancelled] = n[cancelled]  # vertex normals that cancel: the triangle's own
+    with np.errstate(invalid="ignore"):
+        ds = np.einsum("ij,ij->i", d, shade)
     emitter = emission[tri] > 0
-    back = (dn > 0) & ~np.asarray(two_sided, bool)[owner[tri]]
+    back = (ds > 0) & ~np.asarray(two_sided, bool)[owner[tri]]
     seen[hit[solid & emitter]] = PIXEL_EMITTER
     seen[hit[solid & ~emitter & back]] = PIXEL_BACK
     keep = solid & ~emitter & ~back
     seen[hit[keep]] = PIXEL_RECEIVER
     p = camera.position + t[keep, None] * d[keep]
-    normals = np.where((dn[keep] < 0)[:, None], n[keep], -n[keep])
+    towards = (ds[keep] < 0)[:, None]
+    normals = np.where(towards, shade[keep], -shade[keep])
+    geometric = np.where(towards, n[keep], -n[keep])
     view = -d[keep]
     layout = ImageLayout(camera, seen.reshape(camera.shape), hit[keep].astype(np.int64))
-    return CameraHits(p, normals, view, owner[tri[keep]], layout, tuple(notes))
+    return CameraHits(p, normals, view, owner[tri[keep]], layout, tuple(notes), geometric)
 
 
 def camera_receiver_fields(hits: CameraHits, surfaces: Sequence[dict[str, Any] | None],
@@ -221,7 +237,8 @@ def camera_receiver_fields(hits: CameraHits, surfaces: Sequence[dict[str, Any] |
     for m, c in zip(seen_meshes, counts):
         if surfaces[m] is None:
             raise fail(where, unmaterialled(int(m), int(c)))
-    out: dict[str, Any] = {"positions": hits.positions, "normals": hits.normals, "view": hits.view,
+    out: dict[str, Any] = {"positions": hits.positions, "normals": hits.normals,
+                           "geometric_normals": hits.geometric_normals, "view": hits.view,
                            "group": np.zeros(len(hits.positions), np.int32), "group_names": ["camera"],
                            "image": hits.layout}
     for name in SURFACE_FIELDS:

@@ -56,7 +56,7 @@ def _freeze(obj: Any, names: Sequence[str]) -> None:
         object.__setattr__(obj, name, view)
 
 _RECEIVER_ARRAYS = ("positions", "normals", "material", "albedo", "exponent", "view", "group", "alpha",
-                    "distribution", "sample_visible", "eta", "k", "specular", "specular_weight")
+                    "distribution", "sample_visible", "eta", "k", "specular", "specular_weight", "geometric_normals")
 # Per-channel microfacet parameters (see kernels/shading.py): (R, 3) arrays.
 _CHANNEL_ARRAYS = ("eta", "k", "specular")
 # Microfacet parameters of receivers whose material has none (any valid value would do).
@@ -68,7 +68,7 @@ class Receivers:
     """Receiver points with their normals and materials (numpy, read-only)."""
 
     positions: np.ndarray  # (R, 3) float64
-    normals: np.ndarray  # (R, 3) float64, unit
+    normals: np.ndarray  # (R, 3) float64, unit: the shading normal (the BSDF's frame and its cosine)
     material: np.ndarray  # (R,) int32, MATERIALS (kernels/integrand.py) code
     albedo: np.ndarray  # (R,) float64
     exponent: np.ndarray  # (R,) float64
@@ -87,9 +87,17 @@ class Receivers:
     specular_weight: np.ndarray = None  # type: ignore[assignment]  # (R,) roughplastic lobe choice
     # A camera's receivers: which pixel each one is and what the others see (scenes/camera.py).
     image: ImageLayout | None = None
+    # (R, 3) float64, unit: the normal of the surface each receiver lies on (its triangle's),
+    # which governs what rays see, not what the BSDF reflects: the side a ray leaves from,
+    # the receiver's own plane and its self-hit slab (kernels/integrand.py).  It differs
+    # from ``normals`` where a mesh shades with normals interpolated from its vertex
+    # normals, as Mitsuba does.  None: the same as ``normals``.
+    geometric_normals: np.ndarray = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         count = len(self.positions)
+        if self.geometric_normals is None:
+            object.__setattr__(self, "geometric_normals", np.asarray(self.normals))
         for name, value in MICROFACET_DEFAULTS.items():
             if getattr(self, name) is None:
                 shape = (count, 3) if name in _CHANNEL_ARRAYS else (count,)
@@ -155,7 +163,7 @@ class Scene:
                     specular_weight: Any = None, group: Any = None, group_names: Sequence[str] | None = None,
                     grid_shape: tuple[int, int] | None = None, triangle_mesh: Any = None,
                     mesh_names: Sequence[str] | None = None, name: str = "arrays", description: str = "",
-                    device: str = "cpu") -> Scene:
+                    device: str = "cpu", geometric_normals: Any = None) -> Scene:
         """A validated scene from arrays, with the same checks as a scene file.
 
         Parameters
@@ -189,6 +197,11 @@ class Scene:
             (default ``[name]``): labels for ``warpis info`` and messages.
         name, description, device
             Labels, and the Warp device (``"cpu"``, ``"cuda"``, ``"cuda:N"``).
+        geometric_normals
+            The normal of the surface under each receiver, where it differs from the
+            shading normal ``normals`` (a mesh shaded with interpolated vertex normals):
+            one (3,) or (R, 3), normalised; default ``normals``.  Rays leave from its
+            side and ignore its plane; the BSDF and its cosine use ``normals``.
 
         Raises
         ------
@@ -203,7 +216,7 @@ class Scene:
         microfacet = {"alpha": alpha, "distribution": distribution, "sample_visible": sample_visible, "eta": eta,
                       "k": k, "specular": specular, "specular_weight": specular_weight}
         rx = _receivers_from_arrays(where, positions, normals, material, albedo, exponent, view, group,
-                                    group_names, grid_shape, microfacet)
+                                    group_names, grid_shape, microfacet, geometric_normals)
         names = [name] if mesh_names is None else mesh_names
         return _assemble(where, lambda m: f"{where}: mesh {names[m]!r}", "give some triangle an emission > 0",
                          name=name, vertices=vertices, triangles=triangles, emission=emission, receivers=rx,
@@ -217,9 +230,12 @@ class Scene:
     @cached_property
     def digest(self) -> str:
         """sha256 (hex) of the arrays in ``DIGEST_FIELDS``: each one's name, dtype, shape
-        and little-endian bytes.  Equal digests mean equal results."""
+        and little-endian bytes, and the receivers' geometric normals where they are not
+        their normals.  Equal digests mean equal results."""
         h = hashlib.sha256(_DIGEST_FORMAT)
-        for name in DIGEST_FIELDS:
+        rx = self.receivers
+        shaded = () if np.array_equal(rx.geometric_normals, rx.normals) else ("receivers.geometric_normals",)
+        for name in DIGEST_FIELDS + shaded:
             a = self
             for part in name.split("."):
                 a = getattr(a, part)
@@ -410,12 +426,14 @@ def _check_groups(group: np.ndarray, names: Any, where: object) -> None:
 
 def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: Any, albedo: Any, exponent: Any,
                            view: Any, group: Any, group_names: Sequence[str] | None,
-                           grid_shape: Any, microfacet: dict[str, Any]) -> Receivers:
+                           grid_shape: Any, microfacet: dict[str, Any], geometric_normals: Any = None) -> Receivers:
     """Receivers from arrays, broadcast to one row per receiver, directions normalised."""
     p = _array(positions, "positions", where, (None, 3), "(R, 3)")
     count = len(p)
     _receiver_count(count, "positions", where)  # before anything is broadcast to R rows
     n = _directions(_per_receiver(normals, "normals", where, count, 3), "normals", where)
+    ng = n if geometric_normals is None else \
+        _directions(_per_receiver(geometric_normals, "geometric_normals", where, count, 3), "geometric_normals", where)
     v = _directions(_per_receiver(view, "view", where, count, 3), "view", where)
     g = np.zeros(count, np.int64) if group is None else _per_receiver(group, "group", where, count, integer=True)
     names = ["receivers"] if group_names is None else list(group_names) if isinstance(group_names, (list, tuple)) \
@@ -427,6 +445,7 @@ def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: A
         exponent=_per_receiver(exponent, "exponent", where, count),
         view=_unit(v, "view", where), group=g.astype(np.int32), group_names=names,
         grid_shape=_grid_shape(grid_shape, count, where),
+        geometric_normals=_unit(ng, "geometric_normals", where),
         **grey_microfacet(microfacet, _per_receiver(albedo, "albedo", where, count), count, where),
     )
 
@@ -466,11 +485,13 @@ def _check_receivers(rx: Receivers, where: object) -> None:
         raise fail(where, f"receivers: positions must have shape (R, 3) with R >= 1, got {rx.positions.shape}")
     _receiver_count(count, "receivers", where)
     for name in _RECEIVER_ARRAYS:
-        expected = (count, 3) if name in ("positions", "normals", "view", *_CHANNEL_ARRAYS) else (count,)
+        expected = (count, 3) if name in ("positions", "normals", "view", "geometric_normals", *_CHANNEL_ARRAYS) \
+            else (count,)
         if getattr(rx, name).shape != expected:
             raise fail(where, f"receivers: {name} has shape {getattr(rx, name).shape}, expected {expected}")
     _coordinates(rx.positions, "positions", where)
     _directions(rx.normals, "receiver normals", where)
+    _directions(rx.geometric_normals, "receiver geometric normals", where)
     _directions(rx.view, "receiver view", where)
     _check_codes(rx.material, where)
     _within(where, limits.float32_values, rx.albedo, "albedo")

@@ -43,6 +43,7 @@ from ..errors import fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
 from .camera import SURFACE_FIELDS, Camera, camera_receiver_fields, cast_camera, image_side
+from .normals import interpolate_normals
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
                           _unit)
 from .toml_source import _check_keys, _require, _vector, _vectors, read_toml
@@ -944,11 +945,31 @@ _SENSOR_PLUGINS = {"PerspectiveCamera": "perspective", "ThinLensCamera": "thinle
                    "BatchSensor": "batch", "DistantSensor": "distant"}
 
 
+def _corner_normals(shapes: list[_Shape], vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray | None:
+    """(T, 3, 3) the normal Mitsuba shades with at each triangle's corners: a mesh's vertex
+    normals, else the triangle's own normal at every corner; None when no shape has any."""
+    if all(s.shading is None for s in shapes):
+        return None
+    tris = vertices[triangles]
+    own = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        own /= np.linalg.norm(own, axis=1, keepdims=True)
+    out = np.repeat(own[:, None, :], 3, axis=1)
+    start = 0
+    for s in shapes:
+        if s.shading is not None:
+            out[start:start + len(s.faces)] = s.shading[s.faces]
+        start += len(s.faces)
+    return out
+
+
 def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray, triangles: np.ndarray,
                       emission: np.ndarray, owner: np.ndarray, file: Path, device: str
                       ) -> tuple[Receivers, list[str], np.ndarray]:
-    """The camera's pixels as receivers, each with the material of the shape it sees."""
-    hits = cast_camera(camera, vertices, triangles, emission, owner, [s.material.twosided for s in shapes], device)
+    """The camera's pixels as receivers, each with the material of the shape it sees and
+    Mitsuba's shading normal there."""
+    hits = cast_camera(camera, vertices, triangles, emission, owner, [s.material.twosided for s in shapes], device,
+                       _corner_normals(shapes, vertices, triangles))
     _receiver_count(len(hits.positions), f"the camera ({camera.width} × {camera.height})", file)
     for k in np.unique(hits.mesh):
         shapes[k].material.check(f"{file}: shape {shapes[k].label!r} (seen by the camera)")
@@ -1283,7 +1304,7 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
     tol = base + np.array([s.deviation for s in shapes])[owner]
     emitter = np.array([s.radiance is not None for s in shapes])[owner]
     notes: list[str] = []
-    rows: dict[str, list[Any]] = {k: [] for k in ("positions", "normals", "view", "shape", "group")}
+    rows: dict[str, list[Any]] = {k: [] for k in ("positions", "normals", "geometric", "view", "shape", "group")}
     grid_shape = None
     viewers_used: set[str] = set()
     for g, group in enumerate(side["groups"]):
@@ -1329,15 +1350,18 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
             normals_front = np.tile(n, (len(points), 1))
             if len(side["groups"]) == 1:
                 grid_shape = shape_rc
-        notes += _shading_notes(where, shapes, shape_of, index if group["points"] is not None else mine[index],
-                                points, tris, normals_front)
+        shading_front, shading_notes = _shading_normals(
+            f"{sidecar}: {where}", shapes, shape_of, index if group["points"] is not None else mine[index], points,
+            tris, normals_front)
+        notes += shading_notes
         towards = viewer.towards(points)
         length = np.linalg.norm(towards, axis=1)
         if not np.all(length > 0):
             i = int(np.argmin(length > 0))
             raise fail(sidecar, f"{where} point {i}: the viewer ({viewer.what}) is at the receiver itself")
         view = towards / length[:, None]
-        facing = np.einsum("ij,ij->i", view, normals_front) > 0
+        # Mitsuba's BSDFs decide the side in the shading frame (cos θi > 0; twosided flips it).
+        facing = np.einsum("ij,ij->i", view, shading_front) > 0
         on_emitter = np.array([shapes[k].radiance is not None for k in range(len(shapes))])[shape_of]
         if on_emitter.any():
             i = int(np.argmax(on_emitter))
@@ -1358,7 +1382,7 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
         elif group["normal"] is not None:
             normals = np.tile(group["normal"], (len(points), 1))
         else:
-            normals = np.where(facing[:, None], normals_front, -normals_front)
+            normals = np.where(facing[:, None], shading_front, -shading_front)
         behind = np.einsum("ij,ij->i", view, normals) <= 0
         if behind.any():
             i = int(np.argmax(behind))
@@ -1366,6 +1390,7 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
                                 f"normal {_triple3(normals[i])}")
         rows["positions"].append(points)
         rows["normals"].append(normals)
+        rows["geometric"].append(np.where(facing[:, None], normals_front, -normals_front))
         rows["view"].append(view)
         rows["shape"].append(shape_of)
         rows["group"].append(np.full(len(points), g, np.int32))
@@ -1381,6 +1406,7 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
     rx = Receivers(
         positions=np.vstack(rows["positions"]),
         normals=np.vstack(rows["normals"]),
+        geometric_normals=np.vstack(rows["geometric"]),
         material=np.array([MATERIALS[m.kind].code for m in materials], np.int32)[shape_of],
         albedo=per_receiver("albedo"),
         exponent=np.ones(len(shape_of)),
@@ -1399,10 +1425,13 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
     return rx, notes, np.unique(shape_of)
 
 
-def _shading_notes(where: str, shapes: list[_Shape], shape_of: np.ndarray, index: np.ndarray, points: np.ndarray,
-                   tris: np.ndarray, fronts: np.ndarray) -> list[str]:
-    """Where Mitsuba's shading normal (interpolated from a mesh's vertex normals) at the
-    receivers departs from the triangle's normal that warpis uses: a note per shape."""
+def _shading_normals(where: str, shapes: list[_Shape], shape_of: np.ndarray, index: np.ndarray, points: np.ndarray,
+                     tris: np.ndarray, fronts: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    """Mitsuba's shading normal at each receiver (the front side): on a mesh with vertex
+    normals, their interpolation at the point's barycentric coordinates in its triangle
+    ``index``, normalised, as Mitsuba's mesh interaction computes it; elsewhere the
+    triangle's own normal ``fronts``.  And a note per shape where the two differ."""
+    shading_normals = fronts.copy()
     notes = []
     starts = np.cumsum([0] + [len(s.faces) for s in shapes])
     for k in np.unique(shape_of):
@@ -1410,24 +1439,21 @@ def _shading_notes(where: str, shapes: list[_Shape], shape_of: np.ndarray, index
         rows = np.flatnonzero(shape_of == k)
         if shading is None:
             continue
-        t = tris[index[rows]]
-        e1, e2, d = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], points[rows] - t[:, 0]
-        d11, d12, d22 = (np.einsum("ij,ij->i", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
-        d1, d2 = np.einsum("ij,ij->i", d, e1), np.einsum("ij,ij->i", d, e2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            det = d11 * d22 - d12 * d12
-            b1, b2 = (d22 * d1 - d12 * d2) / det, (d11 * d2 - d12 * d1) / det
-        n = shading[shapes[k].faces[index[rows] - starts[k]]]
-        interpolated = (1 - b1 - b2)[:, None] * n[:, 0] + b1[:, None] * n[:, 1] + b2[:, None] * n[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            interpolated /= np.linalg.norm(interpolated, axis=1, keepdims=True)
-            cosine = np.clip(np.einsum("ij,ij->i", interpolated, fronts[rows]), -1.0, 1.0)
-        angle = np.degrees(np.arccos(cosine[np.isfinite(cosine)]))
-        if len(angle) and angle.max() > 0.01:
-            notes.append(f"{where}: on shape {shapes[k].label!r}, Mitsuba shades with normals interpolated from its "
-                         f"vertex normals, up to {angle.max():.3g}° from the triangles' normals that warpis uses "
+        interpolated = interpolate_normals(shading[shapes[k].faces[index[rows] - starts[k]]], tris[index[rows]],
+                                           points[rows])
+        bad = ~np.isfinite(interpolated).all(axis=1)
+        if bad.any():
+            i = int(rows[np.argmax(bad)])
+            raise fail(where, f"point {i} {_triple3(points[i])}: the vertex normals of shape {shapes[k].label!r} "
+                              f"cancel there, so Mitsuba has no shading normal")
+        shading_normals[rows] = interpolated
+        cosine = np.clip(np.einsum("ij,ij->i", interpolated, fronts[rows]), -1.0, 1.0)
+        angle = np.degrees(np.arccos(cosine))
+        if angle.max() > 0.01:
+            notes.append(f"{where}: on shape {shapes[k].label!r}, receivers shade with Mitsuba's normals interpolated "
+                         f"from its vertex normals, up to {angle.max():.3g}° from the triangles' own normals "
                          f"({int((angle > 0.01).sum())} of {len(rows)} receivers)")
-    return notes
+    return shading_normals, notes
 
 
 def _group_viewer(group: dict[str, Any], side: dict[str, Any], sensor: _Viewer | str | None, where: str,
