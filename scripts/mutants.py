@@ -175,6 +175,18 @@ MUTANTS: tuple[Mutant, ...] = (
     Mutant("self-hit-hidden-light-not-refused", "a slab that would hide a light is used instead of refused",
            K + "device.py", "_slab_kernel", "hidden[r] = 3 * face + 2", "hidden[r] = -1",
            ("tests/test_self_hit.py",)),
+    Mutant("shadow-ray-plane-of-the-shading-normal", "shadow rays take the shading normal for the surface's own "
+           "plane, so the surface blocks rays that leave through it", K + "integrand.py", "integrand_via",
+           "le = radiance_unless_blocked(scene, sp.p, sp.ng, w, lead, k, t)",
+           "le = radiance_unless_blocked(scene, sp.p, sp.n, w, lead, k, t)", ("tests/test_vertex_normals.py",)),
+    Mutant("rays-stop-at-the-geometric-plane", "rays above the shading horizon but below the surface's own plane "
+           "see nothing (Mitsuba casts them through the surface)", K + "integrand.py", "integrand_via",
+           "lead = sp.slab / wp.max(wp.abs(wp.dot(sp.ng, w)), 1.0e-12)",
+           "lead = sp.slab / wp.max(wp.dot(sp.ng, w), 1.0e-12)",
+           ("tests/test_vertex_normals.py", "tests/test_shading_normals.py")),
+    Mutant("camera-pixels-shade-flat", "camera pixels shade with their triangle's normal, not the interpolated one",
+           "warpis/scenes/camera.py", "cast_camera", "    if corner_normals is not None:\n",
+           "    if False:\n", ("tests/test_vertex_normals.py",)),
     # ------------------------------------------------------------------ materials (integrand.py)
     Mutant("phong-brdf-normalisation", "Phong BRDF (e+1)/(2π) instead of (e+2)/(2π)", K + "integrand.py", "brdf",
            "sp.albedo * (sp.exponent + 2.0) * INV_2PI", "sp.albedo * (sp.exponent + 1.0) * INV_2PI",

@@ -135,6 +135,38 @@ def _read_mesh(path: Path, scene_file: Path) -> tuple[np.ndarray, np.ndarray]:
         raise fail(path, "a face refers to a vertex that does not exist")
     return vertices, faces
 
+def _file_normals(path: Path, vertices: np.ndarray) -> np.ndarray | None:
+    """The vertex normals an OBJ (``vn``) or PLY (nx, ny, nz) file carries, one per vertex
+    of ``vertices`` as trimesh read them, else None (trimesh's mesh loader drops them, so
+    its format readers are asked; a file whose normals do not line up with its vertices
+    is an error rather than a mesh shaded flat)."""
+    suffix = path.suffix.lower()
+    if suffix not in (".obj", ".ply"):
+        return None
+    try:
+        with open(path, "rb") as fh:
+            if suffix == ".ply":
+                parts = [trimesh.exchange.ply.load_ply(fh)]
+            else:
+                raw = fh.read()
+                try:
+                    raw.decode("utf-8")
+                except UnicodeDecodeError:
+                    raw = raw.decode("latin-1").encode("utf-8")
+                parts = list(trimesh.exchange.obj.load_obj(io.BytesIO(raw)).get("geometry", {}).values())
+    except Exception:  # the mesh itself was read: a reader that fails here found no normals to give
+        return None
+    if not parts or any(part.get("vertex_normals") is None for part in parts):
+        return None
+    their_vertices = np.vstack([np.asarray(part["vertices"], np.float64) for part in parts])
+    normals = np.vstack([np.asarray(part["vertex_normals"], np.float64) for part in parts])
+    if their_vertices.shape != vertices.shape or not np.array_equal(their_vertices, vertices) \
+            or normals.shape != vertices.shape:
+        raise fail(path, "its vertex normals do not line up with its vertices as read: set vertex_normals = false "
+                         "in its [[mesh]] to shade with the triangles' own normals")
+    return normals
+
+
 def _float32_number(value: Any, what: str, file: Path) -> float:
     return _float32(_number(value, what, file), what, file)
 
@@ -317,6 +349,9 @@ class _Meshes:
     owner: np.ndarray
     paths: list[str]
     surfaces: list[dict[str, Any] | None]
+    # (T, 3, 3) the normal a camera pixel shades with at each triangle's corner: a mesh's
+    # file vertex normals, else the triangle's own; None when no mesh has any.
+    corner_normals: np.ndarray | None = None
 
 
 def _surface(spec: Any, where: str, file: Path) -> dict[str, Any]:
@@ -330,17 +365,19 @@ def _surface_row(material: dict[str, Any], file: Path) -> dict[str, Any]:
             **{name: value[0] for name, value in microfacet.items()}}
 
 
-def _meshes(doc: dict, file: Path) -> _Meshes:
+def _meshes(doc: dict, file: Path, shading: bool = False) -> _Meshes:
+    """The [[mesh]] tables; with ``shading`` (a camera's receivers shade), also the vertex
+    normals their files carry."""
     entries = _require(doc, "mesh", "the scene", file)
     if not isinstance(entries, list) or not entries:
         raise fail(file, "the scene needs at least one [[mesh]]")
-    vertices, triangles, emission, owner, paths, surfaces = [], [], [], [], [], []
+    vertices, triangles, emission, owner, paths, surfaces, normals = [], [], [], [], [], [], []
     offset = 0
     for i, entry in enumerate(entries):
         where = f"[[mesh]] #{i + 1}"
         if not isinstance(entry, dict):
             raise fail(file, f"{where} must be a table")
-        _check_keys(entry, {"path", "emission", "transform", "name", "material"}, where, file)
+        _check_keys(entry, {"path", "emission", "transform", "name", "material", "vertex_normals"}, where, file)
         rel = _require(entry, "path", where, file)
         if not isinstance(rel, str):
             raise fail(file, f"{where}.path must be a string")
@@ -350,11 +387,24 @@ def _meshes(doc: dict, file: Path) -> _Meshes:
         radiance = _float32(float(radiance), f"{where} ({rel}): emission", file)
         if not isinstance(entry.get("name", ""), str):
             raise fail(file, f"{where}.name must be a string, got {entry['name']!r}")
+        smooth = entry.get("vertex_normals", True)
+        if not isinstance(smooth, bool):
+            raise fail(file, f"{where} ({rel}): vertex_normals must be true or false, got {smooth!r}")
         v, f = _read_mesh((file.parent / rel), file)
+        n = _file_normals(file.parent / rel, v) if smooth and shading else None
         if "transform" in entry:
             m = _transform(entry["transform"], where, file)
             with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
                 v = v @ m[:3, :3].T + m[:3, 3]
+                n = None if n is None else n @ np.linalg.inv(m[:3, :3])  # normals: the inverse transpose
+        if n is not None:
+            length = np.linalg.norm(n, axis=1)
+            bad = ~(np.isfinite(length) & (length > 0))
+            if bad.any():
+                raise fail(file.parent / rel, f"vertex normal {int(np.argmax(bad))} is zero or not finite: fix it, "
+                                              f"or set vertex_normals = false in its [[mesh]]")
+            n = n / length[:, None]
+        normals.append(n)
         _coordinates(v, f"{where} ({rel}) after its transform", file)
         vertices.append(v)
         triangles.append(f + offset)
@@ -364,7 +414,27 @@ def _meshes(doc: dict, file: Path) -> _Meshes:
         surfaces.append(_surface(entry["material"], f"{where}.material", file) if "material" in entry else None)
         offset += len(v)
     return _Meshes(np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission),
-                   np.concatenate(owner), paths, surfaces)
+                   np.concatenate(owner), paths, surfaces, _corner_normals(vertices, triangles, normals))
+
+
+def _corner_normals(vertices: list[np.ndarray], triangles: list[np.ndarray], normals: list[np.ndarray | None]
+                    ) -> np.ndarray | None:
+    """(T, 3, 3) each triangle's corner normals: its mesh's vertex normals, else its own."""
+    if all(n is None for n in normals):
+        return None
+    out, offset = [], 0
+    for v, f, n in zip(vertices, triangles, normals):
+        local = f - offset
+        if n is None:
+            t = v[local]
+            own = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                own /= np.linalg.norm(own, axis=1, keepdims=True)
+            out.append(np.repeat(own[:, None, :], 3, axis=1))
+        else:
+            out.append(n[local])
+        offset += len(v)
+    return np.concatenate(out)
 
 def load_toml(file: Path, device: str = "cpu", width: int | None = None, height: int | None = None) -> Scene:
     """The scene of the TOML scene file ``file`` on Warp device ``device`` (README.md, "Scene files");
@@ -376,9 +446,9 @@ def load_toml(file: Path, device: str = "cpu", width: int | None = None, height:
         raise fail(file, "name must be a string")
     if not isinstance(doc.get("description", ""), str):
         raise fail(file, "description must be a string")
-    meshes = _meshes(doc, file)
-    notes: tuple[str, ...] = ()
     camera = _camera_spec(doc, file)
+    meshes = _meshes(doc, file, shading=camera is not None)
+    notes: tuple[str, ...] = ()
     if camera is not None:
         receivers, notes = _camera_receivers(camera.resized(width, height, file), meshes, doc, file, str(device))
     elif width is not None or height is not None:
@@ -422,7 +492,7 @@ def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, de
     surfaces = [s if s is not None else default for s in meshes.surfaces]
     # TOML materials reflect on both sides: the normal is turned towards the camera.
     hits = cast_camera(camera, meshes.vertices, meshes.triangles, meshes.emission, meshes.owner,
-                       [True] * len(meshes.paths), device)
+                       [True] * len(meshes.paths), device, meshes.corner_normals)
     _receiver_count(len(hits.positions), f"[receivers.camera] ({camera.width} × {camera.height})", file)
 
     def unmaterialled(m: int, pixels: int) -> str:
