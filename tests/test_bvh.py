@@ -252,9 +252,8 @@ def test_a_tree_deeper_than_the_stack_is_answered_by_warps_query():
     the chain hit the next one."""
     levels = STACK_SIZE // 2
     built, vertices, triangles = _chain(levels)
-    points, indices = wp.array(vertices, dtype=wp.vec3), wp.array(triangles.reshape(-1), dtype=wp.int32)
-    bvh = upload_wide_bvh(built, points, indices)
-    mesh = wp.Mesh(points=points, indices=indices)
+    bvh = upload_wide_bvh(built)
+    mesh = wp.Mesh(points=wp.array(vertices, dtype=wp.vec3), indices=wp.array(triangles.reshape(-1), dtype=wp.int32))
     # Reversed along -z from above the chain the nearest triangle is the last: the
     # traversal must descend every level (pushing three leaves at each) to find it.
     o = np.array([[0.2, 0.3, 0.0], [0.2, 0.3, 3 * levels + 5.0], [0.1, 0.1, 4.5]], np.float32)
@@ -273,7 +272,7 @@ def test_disabled_bvh_is_warps_query():
     up = upload(scene)
     o, d = random_rays(scene, 4096, seed=5)
     out = [wp.zeros(len(o), dtype=t) for t in (wp.int32, wp.float32, wp.int32, wp.float32)]
-    wp.launch(_closest_kernel, dim=len(o), inputs=[upload_wide_bvh(None, up.data.points, up.data.indices), up.mesh.id, wp.array(o, dtype=wp.vec3),
+    wp.launch(_closest_kernel, dim=len(o), inputs=[upload_wide_bvh(None), up.mesh.id, wp.array(o, dtype=wp.vec3),
                                                    wp.array(d, dtype=wp.vec3), *out])
     np.testing.assert_array_equal(out[0].numpy(), out[2].numpy())
     np.testing.assert_array_equal(out[1].numpy(), out[3].numpy())

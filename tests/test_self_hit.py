@@ -192,7 +192,7 @@ def test_warps_own_query_ignores_the_same_hits_as_the_wide_bvh():
     scene = _tilted_scene(1.0)
     up = upload(scene)
     wide = _cast(scene, up.data.bvh, 2**14, seed=4)
-    warp = _cast(scene, upload_wide_bvh(None, up.data.points, up.data.indices), 2**14, seed=4)
+    warp = _cast(scene, upload_wide_bvh(None), 2**14, seed=4)
     assert not np.any(warp[0] == 0)
     np.testing.assert_array_equal(wide[0], warp[0])
     np.testing.assert_array_equal(wide[1], warp[1])

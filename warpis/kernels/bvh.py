@@ -7,7 +7,7 @@ tests four boxes per node and four triangles per leaf at once, and halves the de
 (the face hit first and the sign of its facing), ``any_hit`` what
 ``wp.mesh_query_ray_anyhit`` returns (a shadow ray); both fall back to Warp's query where
 their fixed stack would overflow, so no ray is ever dropped.  Every device uses the tree:
-rays that leave or reach a surface ignore hits on that surface's own plane (``Ray``),
+rays that leave or reach a surface ignore hits on that surface's own plane (``Planes``),
 which only a leaf test of warpis's own can do.
 
 Layout (one :class:`WideBvh` per scene upload):
@@ -85,8 +85,6 @@ class WideBvh:
     corners: wp.array(dtype=wp.vec4)  # 9 per leaf
     faces: wp.array(dtype=wp.vec4i)  # 1 per leaf
     enabled: wp.int32  # 0: the kernels use wp.mesh_query_ray (a tree uploaded empty, for tests)
-    points: wp.array(dtype=wp.vec3)  # the mesh's vertices and indices, for the plane test of
-    indices: wp.array(dtype=wp.int32)  # a hit found by Warp's own query (the fallback)
 
 
 @wp.struct
@@ -94,6 +92,7 @@ class RayHit:
     face: wp.int32  # −1: no hit
     t: wp.float32
     sign: wp.float32  # Warp's convention: the watertight test's determinant; ≤ 0 is a back face
+    slot: wp.int32  # within a leaf test: the leaf slot of the hit, −1 if the leaf found none
 
 
 # --------------------------------------------------------------------------- query
@@ -115,16 +114,22 @@ class Ray:
     sx: float  # its shear constants
     sy: float
     sz: float
-    # The surfaces the ray leaves and reaches (``planes`` = 1): the point ``plane_a`` with
-    # its surface normal ``normal_a`` (the receiver), ``plane_b`` with ``normal_b`` (the
-    # emitter point).  A hit on a triangle of either plane is rounding, never a real
-    # crossing (a ray that starts on a plane meets it nowhere else), and is ignored; so
-    # no slab as tall as the rounding of a huge own triangle is needed.
-    plane_a: wp.vec3
-    normal_a: wp.vec3
-    plane_b: wp.vec3
-    normal_b: wp.vec3
-    planes: wp.int32
+
+
+@wp.struct
+class Planes:
+    """The surfaces a ray leaves and reaches (``on`` = 1): the point ``a`` with its surface
+    normal ``na`` (the receiver), ``b`` with ``nb`` (the emitter point).  A hit on a
+    triangle of either plane is rounding, never a real crossing (a ray that starts on a
+    plane meets it nowhere else), and is ignored; so no slab as tall as the rounding of a
+    huge own triangle is needed.  Apart from :class:`Ray`, which every node test reads:
+    only a hit reads these."""
+
+    a: wp.vec3
+    na: wp.vec3
+    b: wp.vec3
+    nb: wp.vec3
+    on: wp.int32
 
 
 @wp.func
@@ -133,15 +138,9 @@ def _nonzero(x: float) -> float:
 
 
 @wp.func
-def make_ray(o: wp.vec3, d: wp.vec3, plane_a: wp.vec3, normal_a: wp.vec3, plane_b: wp.vec3, normal_b: wp.vec3,
-             planes: wp.int32) -> Ray:
+def make_ray(o: wp.vec3, d: wp.vec3) -> Ray:
     r = Ray()
     r.o = o
-    r.plane_a = plane_a
-    r.normal_a = normal_a
-    r.plane_b = plane_b
-    r.normal_b = normal_b
-    r.planes = planes
     r.inv = wp.vec3(1.0 / _nonzero(d[0]), 1.0 / _nonzero(d[1]), 1.0 / _nonzero(d[2]))
     r.o_inv = wp.cw_mul(o, r.inv)
     r.near_x = wp.where(r.inv[0] < 0.0, 1, 0)
@@ -270,56 +269,58 @@ def coplanar(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, q: wp.vec3, m: wp.vec3) -> b
 
 
 @wp.func
-def _ignored(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, r: Ray) -> bool:
-    """Whether a hit on the triangle is one the ray ignores (see ``Ray.plane_a``)."""
-    if r.planes == 0:
+def _ignored(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, planes: Planes) -> bool:
+    """Whether a hit on the triangle is one the ray ignores (see :class:`Planes`)."""
+    if planes.on == 0:
         return False
-    return coplanar(p0, p1, p2, r.plane_a, r.normal_a) or coplanar(p0, p1, p2, r.plane_b, r.normal_b)
+    return coplanar(p0, p1, p2, planes.a, planes.na) or coplanar(p0, p1, p2, planes.b, planes.nb)
 
 
 @wp.func
-def _leaf_ignores(bvh: WideBvh, leaf: wp.int32, i: wp.int32, r: Ray) -> bool:
-    """_ignored for triangle ``i`` of a leaf (read only for a hit: rare)."""
-    if r.planes == 0:
-        return False
+def _leaf_ignores(bvh: WideBvh, leaf: wp.int32, i: wp.int32, planes: Planes) -> bool:
+    """_ignored for triangle ``i`` of a leaf."""
     base = leaf * 9
     p0 = wp.vec3(bvh.corners[base][i], bvh.corners[base + 1][i], bvh.corners[base + 2][i])
     p1 = wp.vec3(bvh.corners[base + 3][i], bvh.corners[base + 4][i], bvh.corners[base + 5][i])
     p2 = wp.vec3(bvh.corners[base + 6][i], bvh.corners[base + 7][i], bvh.corners[base + 8][i])
-    return _ignored(p0, p1, p2, r)
+    return _ignored(p0, p1, p2, planes)
 
 
 @wp.func
-def _face_ignored(bvh: WideBvh, face: wp.int32, r: Ray) -> bool:
-    """_ignored for a mesh face (a hit of Warp's own query)."""
-    if r.planes == 0:
+def _face_ignored(mesh: wp.uint64, face: wp.int32, planes: Planes) -> bool:
+    """_ignored for a mesh face (a hit of Warp's own query): its corners from the mesh."""
+    if planes.on == 0:
         return False
-    return _ignored(bvh.points[bvh.indices[3 * face]], bvh.points[bvh.indices[3 * face + 1]],
-                    bvh.points[bvh.indices[3 * face + 2]], r)
+    return _ignored(wp.mesh_eval_position(mesh, face, 1.0, 0.0), wp.mesh_eval_position(mesh, face, 0.0, 1.0),
+                    wp.mesh_eval_position(mesh, face, 0.0, 0.0), planes)
 
 
 @wp.func
-def _leaf_hit(bvh: WideBvh, leaf: wp.int32, r: Ray, best: RayHit) -> RayHit:
-    """``best``, replaced by the nearest of the leaf's triangles the ray hits before it."""
+def _leaf_hit(bvh: WideBvh, leaf: wp.int32, r: Ray, best: RayHit, skip: wp.int32) -> RayHit:
+    """``best``, replaced by the nearest of the leaf's triangles the ray hits before it
+    (its ``slot`` set, −1 if none), leaving out the slots of the bit mask ``skip``."""
     ax, ay, az, bx, by, bz, cx, cy, cz = _sheared(bvh, leaf, r)
     faces = bvh.faces[leaf]
     out = best
+    out.slot = -1
     for i in range(4):
         e = _edges(ax, ay, bx, by, cx, cy, i)
         inside = (e[0] >= 0.0 and e[1] >= 0.0 and e[2] >= 0.0) or (e[0] <= 0.0 and e[1] <= 0.0 and e[2] <= 0.0)
         det = e[0] + e[1] + e[2]
         if inside and det != 0.0 and faces[i] >= 0:
             t = r.sz * (e[0] * az[i] + e[1] * bz[i] + e[2] * cz[i]) / det
-            if t >= 0.0 and t < out.t and not _leaf_ignores(bvh, leaf, i, r):
+            if t >= 0.0 and t < out.t and (skip & (1 << i)) == 0:
                 out.face = faces[i]
                 out.t = t
                 out.sign = det
+                out.slot = i
     return out
 
 
 @wp.func
-def _leaf_blocks(bvh: WideBvh, leaf: wp.int32, r: Ray, t_max: float) -> bool:
-    """Whether the ray meets one of the leaf's triangles at 0 ≤ t < t_max (no division)."""
+def _leaf_blocks(bvh: WideBvh, leaf: wp.int32, r: Ray, t_max: float, skip: wp.int32) -> wp.int32:
+    """The first slot of the leaf whose triangle the ray meets at 0 ≤ t < t_max (no
+    division), leaving out the slots of the bit mask ``skip``; −1 if none."""
     ax, ay, az, bx, by, bz, cx, cy, cz = _sheared(bvh, leaf, r)
     faces = bvh.faces[leaf]
     for i in range(4):
@@ -330,9 +331,9 @@ def _leaf_blocks(bvh: WideBvh, leaf: wp.int32, r: Ray, t_max: float) -> bool:
         # 0 ≤ t = T/det < t_max: T and det of one sign, |T| < t_max·|det|.
         signed_t = wp.where(det < 0.0, -big_t, big_t)
         if inside and det != 0.0 and faces[i] >= 0 and signed_t >= 0.0 and signed_t < t_max * wp.abs(det):
-            if not _leaf_ignores(bvh, leaf, i, r):
-                return True
-    return False
+            if (skip & (1 << i)) == 0:
+                return i
+    return -1
 
 
 @wp.func
@@ -343,9 +344,10 @@ def _far_first(da: float, ka: wp.int32, db: float, kb: wp.int32):
 
 
 @wp.func
-def _wide_closest(bvh: WideBvh, r: Ray, t_max: float) -> RayHit:
+def _wide_closest(bvh: WideBvh, r: Ray, t_max: float, planes: Planes) -> RayHit:
     """closest_hit through the wide BVH; face ``OVERFLOW`` if the stack would overflow."""
     best = RayHit()
+    best.slot = -1
     best.face = -1
     best.t = t_max
     best.sign = 0.0
@@ -382,7 +384,14 @@ def _wide_closest(bvh: WideBvh, r: Ray, t_max: float) -> RayHit:
             near[i2] = d2
             top = wp.where(d3 == INFINITY, top, start + 3)
         if node != NO_NODE:
-            best = _leaf_hit(bvh, -node - 1, r, best)
+            leaf = -node - 1
+            hit = _leaf_hit(bvh, leaf, r, best, 0)
+            if planes.on != 0:
+                skip = wp.int32(0)
+                while hit.slot >= 0 and _leaf_ignores(bvh, leaf, hit.slot, planes):
+                    skip = skip | (1 << hit.slot)
+                    hit = _leaf_hit(bvh, leaf, r, best, skip)
+            best = hit
         # Pop the nearest entry the current hit does not already hide.
         node = NO_NODE
         while top > 0:
@@ -396,7 +405,7 @@ def _wide_closest(bvh: WideBvh, r: Ray, t_max: float) -> RayHit:
 
 
 @wp.func
-def _wide_any(bvh: WideBvh, r: Ray, t_max: float) -> wp.int32:
+def _wide_any(bvh: WideBvh, r: Ray, t_max: float, planes: Planes) -> wp.int32:
     """any_hit through the wide BVH: 1 hit, 0 none, ``OVERFLOW`` if the stack would overflow."""
     nodes = NodeStack()
     top = wp.int32(1)
@@ -405,7 +414,14 @@ def _wide_any(bvh: WideBvh, r: Ray, t_max: float) -> wp.int32:
         top -= 1
         node = nodes[top]
         if node < 0:
-            if _leaf_blocks(bvh, -node - 1, r, t_max):
+            leaf = -node - 1
+            slot = _leaf_blocks(bvh, leaf, r, t_max, 0)
+            if planes.on != 0:
+                skip = wp.int32(0)
+                while slot >= 0 and _leaf_ignores(bvh, leaf, slot, planes):
+                    skip = skip | (1 << slot)
+                    slot = _leaf_blocks(bvh, leaf, r, t_max, skip)
+            if slot >= 0:
                 return 1
         else:
             if top > STACK_SIZE - 4:
@@ -425,7 +441,7 @@ IGNORED_STEPS = 64
 
 
 @wp.func
-def _warp_closest(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float) -> RayHit:
+def _warp_closest(mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float, planes: Planes) -> RayHit:
     """Warp's ``mesh_query_ray``, stepped past the hits the ray ignores: after an ignored
     hit at distance t it starts again at t·(1 + 2^-10), at most IGNORED_STEPS times.
 
@@ -437,12 +453,13 @@ def _warp_closest(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: floa
     hit.face = -1
     hit.t = t_max
     hit.sign = 0.0
+    hit.slot = -1
     start = float(0.0)
     for _step in range(IGNORED_STEPS):
         q = wp.mesh_query_ray(mesh, r.o + start * d, d, t_max - start)
         if not q.result:
             return hit
-        if not _face_ignored(bvh, q.face, r):
+        if not _face_ignored(mesh, q.face, planes):
             hit.face = q.face
             hit.t = start + q.t
             hit.sign = q.sign
@@ -454,39 +471,50 @@ def _warp_closest(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: floa
 
 
 @wp.func
-def _closest(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float) -> RayHit:
-    if bvh.enabled != 0:
-        hit = _wide_closest(bvh, r, t_max)
-        if hit.face != OVERFLOW:
-            return hit
-    return _warp_closest(bvh, mesh, r, d, t_max)
+def _planes(a: wp.vec3, na: wp.vec3, b: wp.vec3, nb: wp.vec3, on: wp.int32) -> Planes:
+    p = Planes()
+    p.a = a
+    p.na = na
+    p.b = b
+    p.nb = nb
+    p.on = on
+    return p
 
 
 @wp.func
-def _any(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float) -> bool:
+def _closest(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float, planes: Planes) -> RayHit:
     if bvh.enabled != 0:
-        found = _wide_any(bvh, r, t_max)
+        hit = _wide_closest(bvh, r, t_max, planes)
+        if hit.face != OVERFLOW:
+            return hit
+    return _warp_closest(mesh, r, d, t_max, planes)
+
+
+@wp.func
+def _any(bvh: WideBvh, mesh: wp.uint64, r: Ray, d: wp.vec3, t_max: float, planes: Planes) -> bool:
+    if bvh.enabled != 0:
+        found = _wide_any(bvh, r, t_max, planes)
         if found != OVERFLOW:
             return found == 1
     if not wp.mesh_query_ray_anyhit(mesh, r.o, d, t_max):
         return False
-    if r.planes == 0:
+    if planes.on == 0:
         return True
-    return _warp_closest(bvh, mesh, r, d, t_max).face >= 0  # the hit may be an ignored one
+    return _warp_closest(mesh, r, d, t_max, planes).face >= 0  # the hit may be an ignored one
 
 
 @wp.func
 def closest_hit(bvh: WideBvh, mesh: wp.uint64, o: wp.vec3, d: wp.vec3, t_max: float) -> RayHit:
     """The first triangle the ray o + t·d, 0 ≤ t < t_max, hits (face −1 if none): through
     the wide BVH, or Warp's ``mesh_query_ray`` where it is disabled or too deep."""
-    return _closest(bvh, mesh, make_ray(o, d, o, d, o, d, 0), d, t_max)
+    return _closest(bvh, mesh, make_ray(o, d), d, t_max, _planes(o, d, o, d, 0))
 
 
 @wp.func
 def any_hit(bvh: WideBvh, mesh: wp.uint64, o: wp.vec3, d: wp.vec3, t_max: float) -> bool:
     """Whether the ray o + t·d meets any triangle at 0 ≤ t < t_max (a shadow ray): through
     the wide BVH, or Warp's ``mesh_query_ray_anyhit`` where it is disabled or too deep."""
-    return _any(bvh, mesh, make_ray(o, d, o, d, o, d, 0), d, t_max)
+    return _any(bvh, mesh, make_ray(o, d), d, t_max, _planes(o, d, o, d, 0))
 
 
 @wp.func
@@ -494,7 +522,7 @@ def closest_hit_from(bvh: WideBvh, mesh: wp.uint64, x: wp.vec3, nx: wp.vec3, o: 
                      t_max: float) -> RayHit:
     """closest_hit for a ray that leaves the surface point ``x`` of unit normal ``nx`` (o
     is on the ray beyond x): hits on triangles of x's plane are rounding, and are ignored."""
-    return _closest(bvh, mesh, make_ray(o, d, x, nx, x, nx, 1), d, t_max)
+    return _closest(bvh, mesh, make_ray(o, d), d, t_max, _planes(x, nx, x, nx, 1))
 
 
 @wp.func
@@ -503,7 +531,7 @@ def any_hit_between(bvh: WideBvh, mesh: wp.uint64, x: wp.vec3, nx: wp.vec3, y: w
     """any_hit for a shadow ray from the surface point ``x`` (unit normal ``nx``) to the
     surface point ``y`` (unit normal ``ny``), along o + t·d, 0 ≤ t < t_max, between them:
     hits on triangles of x's plane or of y's are rounding, and are ignored."""
-    return _any(bvh, mesh, make_ray(o, d, x, nx, y, ny, 1), d, t_max)
+    return _any(bvh, mesh, make_ray(o, d), d, t_max, _planes(x, nx, y, ny, 1))
 
 
 # --------------------------------------------------------------------------- build
@@ -804,13 +832,10 @@ def _fits(built: WideBvhArrays, corners: np.ndarray) -> bool:
         and bool(np.all(built.children >= -leaves))
 
 
-def upload_wide_bvh(built: WideBvhArrays | None, points: wp.array, indices: wp.array) -> WideBvh:
-    """The :class:`WideBvh` struct of ``built`` on the current device, over the mesh of
-    ``points`` and ``indices`` (Warp arrays); ``None`` gives a disabled one (the kernels
-    then use ``wp.mesh_query_ray``)."""
+def upload_wide_bvh(built: WideBvhArrays | None) -> WideBvh:
+    """The :class:`WideBvh` struct of ``built`` on the current device; ``None`` gives a
+    disabled one (the kernels then use ``wp.mesh_query_ray``)."""
     b = WideBvh()
-    b.points = points
-    b.indices = indices
     if built is None:
         built = WideBvhArrays(np.zeros((6, 4), np.float32), np.zeros((1, 4), np.int32),
                               np.zeros((9, 4), np.float32), np.full((1, 4), -1, np.int32), 0)

@@ -379,7 +379,7 @@ def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, 
     d.mesh = mesh.id
     # Every device's ray queries walk warpis's 4-wide BVH: its leaf test ignores the hits
     # on a ray's own planes, which Warp's queries cannot (bvh.py).
-    d.bvh = upload_wide_bvh(cached_wide_bvh(scene.vertices, scene.triangles, scene.emitters), points, indices)
+    d.bvh = upload_wide_bvh(cached_wide_bvh(scene.vertices, scene.triangles, scene.emitters))
     d.emitter_bvh = emitter_bvh.id
     d.points = points
     d.indices = indices
