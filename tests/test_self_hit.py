@@ -18,15 +18,13 @@ import numpy as np
 import pytest
 import warp as wp
 from conftest import one_error_line, write_scene
+from test_hostile import _floor_and_light
 
 import warpis
 from warpis.analysis.reference import reference
 from warpis.kernels.bvh import WideBvh, any_hit_between, closest_hit_from, upload_wide_bvh
 from warpis.kernels.device import SELF_HIT_SLAB, upload
 from warpis.kernels.engine import run_trials
-from warpis.scenes import resolve_scene_path
-
-OCCLUDED_QUAD = resolve_scene_path("occluded-quad").parent
 Z_LIMIT = 4.0
 ESTIMATORS = ("independent:single:light-area", "jittered:balance:light-area+cosine")
 
@@ -47,21 +45,7 @@ def _within(scene: warpis.Scene, estimator: str, n: int, trials: int, seed: int)
 
 
 def _huge_floor(tmp_path, stretch: float) -> warpis.Scene:
-    text = f"""[[mesh]]
-path = "{OCCLUDED_QUAD / 'floor.obj'}"
-transform = {{ scale = [{stretch!r}, {stretch!r}, 1.0] }}
-[[mesh]]
-path = "{OCCLUDED_QUAD / 'light.obj'}"
-emission = 10.0
-[receivers]
-points = [[-1.5, 0.0, 0.0], [0.0, 0.0, 0.0]]
-normal = [0.0, 0.0, 1.0]
-[material]
-type = "irradiance"
-"""
-    path = tmp_path / f"floor-x{stretch:g}.toml"
-    path.write_text(text)
-    return warpis.load_scene(path)
+    return warpis.load_scene(_floor_and_light(tmp_path, stretch))
 
 
 def test_a_floor_a_million_times_larger_keeps_the_light(tmp_path):

@@ -45,7 +45,7 @@ import numpy as np
 import warp as wp
 
 __all__ = ["LEAF_SIZE", "PLANE_TOL", "SELF_HIT", "RayHit", "WideBvh", "WideBvhArrays", "any_hit", "any_hit_between", "build_wide_bvh",
-           "cache_dir", "cached_wide_bvh", "closest_hit", "closest_hit_from", "coplanar", "upload_wide_bvh"]
+           "cache_dir", "cached_wide_bvh", "closest_hit", "closest_hit_from", "coplanar", "magnitude", "upload_wide_bvh", "vec64"]
 
 LEAF_SIZE = 4  # triangles per leaf, tested together
 WIDTH = 4  # children per node
@@ -241,12 +241,14 @@ def _edges(ax: wp.vec4, ay: wp.vec4, bx: wp.vec4, by: wp.vec4, cx: wp.vec4, cy: 
 
 
 @wp.func
-def _abs_max(v: wp.vec3) -> float:
+def magnitude(v: wp.vec3) -> float:
+    """The largest coordinate magnitude |v|∞: what float32 rounding of v scales with."""
     return wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))
 
 
 @wp.func
-def _vec64(v: wp.vec3) -> wp.vec3d:
+def vec64(v: wp.vec3) -> wp.vec3d:
+    """v in float64 (exactly)."""
     return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
 
 
@@ -256,14 +258,14 @@ def coplanar(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, q: wp.vec3, m: wp.vec3) -> b
     ``m``, to within float32's rounding: its normal parallel to m (``PARALLEL``) and
     |n̂·(q − p0)| ≤ PLANE_TOL × the largest coordinate magnitude of the corners and of q
     (in float64, where the differences of float32 values are exact)."""
-    a = _vec64(p0)
-    n = wp.cross(_vec64(p1) - a, _vec64(p2) - a)
+    a = vec64(p0)
+    n = wp.cross(vec64(p1) - a, vec64(p2) - a)
     nn = wp.dot(n, n)
-    along = wp.dot(n, _vec64(m))
+    along = wp.dot(n, vec64(m))
     if along * along < wp.float64(PARALLEL * PARALLEL) * nn:
         return False
-    h = wp.dot(n, _vec64(q) - a)
-    mag = wp.max(wp.max(_abs_max(p0), _abs_max(p1)), wp.max(_abs_max(p2), _abs_max(q)))
+    h = wp.dot(n, vec64(q) - a)
+    mag = wp.max(wp.max(magnitude(p0), magnitude(p1)), wp.max(magnitude(p2), magnitude(q)))
     tol = wp.float64(mag) * wp.float64(PLANE_TOL)
     return h * h <= tol * tol * nn
 

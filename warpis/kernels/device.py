@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import WarpisError
-from .bvh import PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, upload_wide_bvh
+from .bvh import PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, magnitude, upload_wide_bvh, vec64
 
 if TYPE_CHECKING:
     from ..scenes import Scene
@@ -177,52 +177,42 @@ def _cdf(weights: np.ndarray) -> np.ndarray:
 
 
 @wp.func
-def _vec64(v: wp.vec3) -> wp.vec3d:
-    return wp.vec3d(wp.float64(v[0]), wp.float64(v[1]), wp.float64(v[2]))
-
-
-@wp.func
 def triangle_distance(x: wp.vec3, p0: wp.vec3, p1: wp.vec3, p2: wp.vec3) -> float:
     """Distance from ``x`` to the triangle (p0, p1, p2), in float64 (Ericson 2005, 5.1.5:
     the closest point by the Voronoi region of x)."""
-    p = _vec64(x)
-    a = _vec64(p0)
-    ab = _vec64(p1) - a
-    ac = _vec64(p2) - a
+    p = vec64(x)
+    a = vec64(p0)
+    ab = vec64(p1) - a
+    ac = vec64(p2) - a
     ap = p - a
     d1 = wp.dot(ab, ap)
     d2 = wp.dot(ac, ap)
     closest = a
     if d1 <= wp.float64(0.0) and d2 <= wp.float64(0.0):
         return float(wp.length(p - closest))
-    bp = p - _vec64(p1)
+    bp = p - vec64(p1)
     d3 = wp.dot(ab, bp)
     d4 = wp.dot(ac, bp)
     if d3 >= wp.float64(0.0) and d4 <= d3:
-        return float(wp.length(p - _vec64(p1)))
+        return float(wp.length(p - vec64(p1)))
     vc = d1 * d4 - d3 * d2
     if vc <= wp.float64(0.0) and d1 >= wp.float64(0.0) and d3 <= wp.float64(0.0):
         return float(wp.length(p - (a + (d1 / (d1 - d3)) * ab)))
-    cp = p - _vec64(p2)
+    cp = p - vec64(p2)
     d5 = wp.dot(ab, cp)
     d6 = wp.dot(ac, cp)
     if d6 >= wp.float64(0.0) and d5 <= d6:
-        return float(wp.length(p - _vec64(p2)))
+        return float(wp.length(p - vec64(p2)))
     vb = d5 * d2 - d1 * d6
     if vb <= wp.float64(0.0) and d2 >= wp.float64(0.0) and d6 <= wp.float64(0.0):
         return float(wp.length(p - (a + (d2 / (d2 - d6)) * ac)))
     va = d3 * d6 - d5 * d4
     if va <= wp.float64(0.0) and (d4 - d3) >= wp.float64(0.0) and (d5 - d6) >= wp.float64(0.0):
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return float(wp.length(p - (_vec64(p1) + w * (_vec64(p2) - _vec64(p1)))))
+        return float(wp.length(p - (vec64(p1) + w * (vec64(p2) - vec64(p1)))))
     denom = wp.float64(1.0) / (va + vb + vc)
     closest = a + (vb * denom) * ab + (vc * denom) * ac
     return float(wp.length(p - closest))
-
-
-@wp.func
-def _magnitude(v: wp.vec3) -> float:
-    return wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))
 
 
 FLOAT32_ULPS_4 = wp.constant(4.0 * 2.0**-24)  # 4 float32 ulps, relative
@@ -265,7 +255,7 @@ def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.a
     r = wp.tid()
     x = position[r]
     nx = normal[r]
-    own = _magnitude(x)
+    own = magnitude(x)
     scale = own
     hidden[r] = -1
     query = wp.mesh_query_aabb(mesh, x - wp.vec3(reach), x + wp.vec3(reach))
@@ -274,7 +264,7 @@ def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.a
         p0 = points[indices[face * 3]]
         p1 = points[indices[face * 3 + 1]]
         p2 = points[indices[face * 3 + 2]]
-        mag = wp.max(wp.max(_magnitude(p0), _magnitude(p1)), wp.max(_magnitude(p2), own))
+        mag = wp.max(wp.max(magnitude(p0), magnitude(p1)), wp.max(magnitude(p2), own))
         dist = triangle_distance(x, p0, p1, p2)
         if dist <= mag * PLANE_TOL:  # a surface at x, to float32's resolution there
             if not coplanar(p0, p1, p2, x, nx):
@@ -290,7 +280,7 @@ def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.a
             p0 = points[indices[face * 3]]
             p1 = points[indices[face * 3 + 1]]
             p2 = points[indices[face * 3 + 2]]
-            mag = wp.max(wp.max(_magnitude(p0), _magnitude(p1)), wp.max(_magnitude(p2), own))
+            mag = wp.max(wp.max(magnitude(p0), magnitude(p1)), wp.max(magnitude(p2), own))
             dist = triangle_distance(x, p0, p1, p2)
             if dist > mag * PLANE_TOL and dist < delta and not coplanar(p0, p1, p2, x, nx):
                 hidden[r] = 3 * face + 2  # what the slab would hide
