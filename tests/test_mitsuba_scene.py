@@ -545,6 +545,9 @@ def test_receivers_on_a_smooth_mesh_and_on_an_analytic_sphere(tmp_path):
     # The analytic sphere's top lies off its tessellation by less than the tessellation's sagitta.
     assert np.linalg.norm(rx.positions[1] - [-1, 0, 0.8]) < 0.01 * 0.3
     assert rx.normals[1] @ [0, 0, 1] > math.cos(math.radians(10))
+    # ... and it shades with Mitsuba's analytic normal there, not its tessellation's.
+    radial = rx.positions[1] - [-1, 0, 0.5]
+    np.testing.assert_allclose(rx.normals[1], radial / np.linalg.norm(radial), atol=1e-9)
     note(scene, r"^\[\[receivers\]\] #2 'ball-top': 1 point\(s\) moved onto the tessellation of an analytic shape")
 
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -540,6 +540,9 @@ class _Shape:
     deviation: float = 0.0  # how far the triangles stray from Mitsuba's analytic surface
     id: str = ""
     shading: np.ndarray | None = None  # (V, 3) Mitsuba's vertex normals on the front side, for a mesh
+    # (P, 3) → (P, 3) Mitsuba's front normal of a curved analytic shape (sphere, cylinder)
+    # at points of its tessellation, unnormalised: what Mitsuba shades with there
+    analytic_normal: Any = None
     notes: list[str] = field(default_factory=list)
 
 
@@ -558,13 +561,14 @@ def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray) -> l
         label = shape.id() or f"{plugin} #{i + 1}"
         where = f"{file}: shape {label!r}"
         notes: list[str] = []
-        vertices, faces, deviation, shading = _geometry(mi, shape, cls, where, notes)
+        vertices, faces, deviation, shading, analytic_normal = _geometry(mi, shape, cls, where, notes)
         radiance, emission = None, 0.0
         if shape.is_emitter():
             radiance, emission = _radiance(mi, shape.emitter(), where, weights)
         material = _material(mi, shape.bsdf(), where, weights, notes)
         s = _Shape(label=label, plugin=plugin, vertices=vertices, faces=faces, radiance=radiance, emission=emission,
-                   material=material, deviation=deviation, id=shape.id(), shading=shading)
+                   material=material, deviation=deviation, id=shape.id(), shading=shading,
+                   analytic_normal=analytic_normal)
         if radiance is not None:
             s.notes.append(f"{label}: area emitter, radiance {emission:.6g} (linear sRGB {_triple(radiance)})"
                            + ("; 0 in this channel: it emits nothing here" if emission == 0 else ""))
@@ -595,16 +599,17 @@ def _radiance(mi: Any, emitter: Any, where: str, weights: np.ndarray) -> tuple[n
 
 
 def _geometry(mi: Any, shape: Any, cls: str, where: str, notes: list[str]
-              ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+              ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None, Any]:
     """Vertices and faces of a shape, each face wound counter-clockwise around Mitsuba's
-    front side; how far they stray from Mitsuba's surface (0 for triangle meshes); and a
-    mesh's vertex normals, which Mitsuba shades with."""
+    front side; how far they stray from Mitsuba's surface (0 for triangle meshes); a
+    mesh's vertex normals, which Mitsuba shades with; and a curved analytic shape's front
+    normal as a function of the point, which Mitsuba shades with there."""
     kind = int(shape.shape_type())
     plugin = _SHAPE_PLUGINS.get(cls, cls.lower())
     flipped = bool(shape.has_flipped_normals())
     if kind == int(mi.ShapeType.Mesh):
         vertices, faces, shading = _mesh(mi, shape, where, notes)
-        return vertices, faces, 0.0, shading
+        return vertices, faces, 0.0, shading, None
     if kind in (int(mi.ShapeType.Rectangle), int(mi.ShapeType.Sphere), int(mi.ShapeType.Disk),
                 int(mi.ShapeType.Cylinder)):
         m = _matrix(_params(mi, shape)["to_world"])
@@ -613,7 +618,10 @@ def _geometry(mi: Any, shape: Any, cls: str, where: str, notes: list[str]
         builder = {int(mi.ShapeType.Rectangle): _rectangle, int(mi.ShapeType.Sphere): _sphere,
                    int(mi.ShapeType.Disk): _disk, int(mi.ShapeType.Cylinder): _cylinder}[kind]
         vertices, faces, normal, deviation = builder(m, where)
-        return vertices, _orient(vertices, faces, normal, -1.0 if flipped else 1.0), deviation, None
+        sign = -1.0 if flipped else 1.0
+        curved = kind in (int(mi.ShapeType.Sphere), int(mi.ShapeType.Cylinder))
+        analytic = (lambda p: sign * normal(p)) if curved else None
+        return vertices, _orient(vertices, faces, normal, sign), deviation, None, analytic
     if plugin in ("instance", "shapegroup"):
         raise fail(where, f"{plugin}s are not supported; warpis supports {SUPPORTED_SHAPES}")
     raise fail(where, f"shape type {plugin!r} is not supported; warpis supports {SUPPORTED_SHAPES}")
@@ -963,6 +971,22 @@ def _corner_normals(shapes: list[_Shape], vertices: np.ndarray, triangles: np.nd
     return out
 
 
+def _analytic_pixels(hits: Any, shapes: list[_Shape]) -> Any:
+    """Camera pixels on a curved analytic shape shade with its exact normal at the point
+    (turned towards the camera), as Mitsuba does, not with its tessellation's."""
+    normals = np.array(hits.normals)
+    changed = False
+    for k, s in enumerate(shapes):
+        rows = np.flatnonzero(hits.mesh == k)
+        if s.analytic_normal is None or len(rows) == 0:
+            continue
+        n = s.analytic_normal(hits.positions[rows])
+        n = n / np.linalg.norm(n, axis=1, keepdims=True)
+        normals[rows] = np.where((np.einsum("ij,ij->i", n, hits.view[rows]) < 0)[:, None], -n, n)
+        changed = True
+    return replace(hits, normals=normals) if changed else hits
+
+
 def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray, triangles: np.ndarray,
                       emission: np.ndarray, owner: np.ndarray, file: Path, device: str
                       ) -> tuple[Receivers, list[str], np.ndarray]:
@@ -970,6 +994,7 @@ def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray
     Mitsuba's shading normal there."""
     hits = cast_camera(camera, vertices, triangles, emission, owner, [s.material.twosided for s in shapes], device,
                        _corner_normals(shapes, vertices, triangles))
+    hits = _analytic_pixels(hits, shapes)
     _receiver_count(len(hits.positions), f"the camera ({camera.width} × {camera.height})", file)
     for k in np.unique(hits.mesh):
         shapes[k].material.check(f"{file}: shape {shapes[k].label!r} (seen by the camera)")
@@ -1437,6 +1462,14 @@ def _shading_normals(where: str, shapes: list[_Shape], shape_of: np.ndarray, ind
     for k in np.unique(shape_of):
         shading = shapes[k].shading
         rows = np.flatnonzero(shape_of == k)
+        if shapes[k].analytic_normal is not None:
+            exact = shapes[k].analytic_normal(points[rows])
+            shading_normals[rows] = exact / np.linalg.norm(exact, axis=1, keepdims=True)
+            angle = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", shading_normals[rows], fronts[rows]), -1, 1)))
+            if angle.max() > 0.01:
+                notes.append(f"{where}: on shape {shapes[k].label!r} ({shapes[k].plugin}), receivers shade with "
+                             f"Mitsuba's analytic normal, up to {angle.max():.3g}° from its tessellation's")
+            continue
         if shading is None:
             continue
         interpolated = interpolate_normals(shading[shapes[k].faces[index[rows] - starts[k]]], tris[index[rows]],
