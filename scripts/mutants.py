@@ -220,8 +220,8 @@ MUTANTS: tuple[Mutant, ...] = (
            "warpis/scenes/camera.py", "directions", "x = ((np.arange(self.width) + 0.5)",
            "x = ((np.arange(self.width) + 0.0)", ("tests/test_camera.py",)),
     Mutant("camera-backs-shaded", "the back of a one-sided surface becomes a receiver (Mitsuba gives 0)",
-           "warpis/scenes/camera.py", "cast_camera", "back = (dn > 0) & ~np.asarray(two_sided, bool)[owner[tri]]",
-           "back = (dn > 0) & np.zeros(len(two_sided), bool)[owner[tri]]", ("tests/test_camera.py",)),
+           "warpis/scenes/camera.py", "cast_camera", "back = (ds > 0) & ~np.asarray(two_sided, bool)[owner[tri]]",
+           "back = (ds > 0) & np.zeros(len(two_sided), bool)[owner[tri]]", ("tests/test_camera.py",)),
     # ------------------------------------------------------------------ images (runs/image.py)
     Mutant("image-efficiency-ignores-cost", "efficiency 1/variance, the time per estimate forgotten",
            "warpis/runs/image.py", "assemble", "eff = 1.0 / (var * cost)", "eff = 1.0 / var",
