@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from ..errors import WarpisError
-from .bvh import PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, magnitude, upload_wide_bvh, vec64
+from .bvh import PARALLEL, PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, magnitude, upload_wide_bvh, vec64
 
 if TYPE_CHECKING:
     from ..scenes import Scene
@@ -219,6 +219,11 @@ FLOAT32_ULPS_4 = wp.constant(4.0 * 2.0**-24)  # 4 float32 ulps, relative
 
 
 @wp.func
+def _corners(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), face: wp.int32):
+    return points[indices[face * 3]], points[indices[face * 3 + 1]], points[indices[face * 3 + 2]]
+
+
+@wp.func
 def _off_plane(points64: wp.array(dtype=wp.vec3d), indices: wp.array(dtype=wp.int32), face: wp.int32,
                x: wp.vec3d, mag: float) -> bool:
     """Whether x lies more than 4 float32 ulps of ``mag`` off the plane of triangle
@@ -261,9 +266,7 @@ def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.a
     query = wp.mesh_query_aabb(mesh, x - wp.vec3(reach), x + wp.vec3(reach))
     face = wp.int32(0)
     while wp.mesh_query_aabb_next(query, face):
-        p0 = points[indices[face * 3]]
-        p1 = points[indices[face * 3 + 1]]
-        p2 = points[indices[face * 3 + 2]]
+        p0, p1, p2 = _corners(points, indices, face)
         mag = wp.max(wp.max(magnitude(p0), magnitude(p1)), wp.max(magnitude(p2), own))
         dist = triangle_distance(x, p0, p1, p2)
         if dist <= mag * PLANE_TOL:  # a surface at x, to float32's resolution there
@@ -277,9 +280,7 @@ def _slab_kernel(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), indices: wp.a
     if scale > own and hidden[r] < 0:  # a surface coarser than x's own coordinates sets the slab
         near = wp.mesh_query_aabb(mesh, x - wp.vec3(delta), x + wp.vec3(delta))
         while wp.mesh_query_aabb_next(near, face):
-            p0 = points[indices[face * 3]]
-            p1 = points[indices[face * 3 + 1]]
-            p2 = points[indices[face * 3 + 2]]
+            p0, p1, p2 = _corners(points, indices, face)
             mag = wp.max(wp.max(magnitude(p0), magnitude(p1)), wp.max(magnitude(p2), own))
             dist = triangle_distance(x, p0, p1, p2)
             if dist > mag * PLANE_TOL and dist < delta and not coplanar(p0, p1, p2, x, nx):
@@ -316,9 +317,10 @@ def _emitter_boxes(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def emitter_slabs(scene: Scene) -> np.ndarray:
     """(E,) float32: the self-hit slab at the emitter end of a shadow ray for each emitter
     triangle k, SELF_HIT × the largest coordinate magnitude of the triangles that share a
-    vertex with k and bend away from its plane.  Triangles in k's plane need none: the
-    shadow ray ignores hits in a plane through its end point (bvh.py), and the end point's
-    own magnitude enters at run time (integrand.py)."""
+    vertex with k and bend away from its plane.  Triangles of k's plane need none: the
+    shadow ray ignores hits on the plane of its end point (bvh.coplanar, whose rule this
+    follows: parallel normals and every corner of k within PLANE_TOL of the triangle's
+    plane), and the end point's own magnitude enters at run time (integrand.py)."""
     from scipy.sparse import csr_matrix
 
     corners = scene.triangle_vertices().astype(np.float32).astype(np.float64)  # (T, 3, 3)
@@ -330,11 +332,14 @@ def emitter_slabs(scene: Scene) -> np.ndarray:
     k, j = pairs.row, pairs.col
     normal = np.cross(corners[j, 1] - corners[j, 0], corners[j, 2] - corners[j, 0])
     height = np.einsum("pj,pcj->pc", normal, corners[emitters[k]] - corners[j, :1])  # k's corners over j's plane
-    magnitude = np.abs(corners).max(axis=(1, 2))
-    tol = SELF_HIT_SLAB * magnitude[j] * np.linalg.norm(normal, axis=1)
-    bends = (np.abs(height) > tol[:, None]).any(axis=1)
+    size = np.abs(corners).max(axis=(1, 2))
+    length = np.linalg.norm(normal, axis=1)
+    own = np.cross(corners[emitters[k], 1] - corners[emitters[k], 0], corners[emitters[k], 2] - corners[emitters[k], 0])
+    parallel = np.abs(np.einsum("pj,pj->p", normal, own)) >= PARALLEL * length * np.linalg.norm(own, axis=1)
+    tol = PLANE_TOL * np.maximum(size[j], size[emitters[k]]) * length
+    bends = ~parallel | (np.abs(height) > tol[:, None]).any(axis=1)
     out = np.zeros(len(emitters))
-    np.maximum.at(out, k[bends], SELF_HIT_SLAB * magnitude[j[bends]])
+    np.maximum.at(out, k[bends], SELF_HIT_SLAB * size[j[bends]])
     return out.astype(np.float32)
 
 
