@@ -177,6 +177,7 @@ class CameraHits:
     layout: ImageLayout
     notes: tuple[str, ...]
     geometric_normals: np.ndarray | None = None  # the triangles' own, on the same side; None: ``normals``
+    triangles: np.ndarray | None = None  # the triangle each receiver lies on
 
 
 def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
@@ -239,7 +240,7 @@ def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emi
     geometric = np.where(towards, n[keep], -n[keep])
     view = -d[keep]
     layout = ImageLayout(camera, seen.reshape(camera.shape), hit[keep].astype(np.int64))
-    return CameraHits(p, normals, view, owner[tri[keep]], layout, tuple(notes), geometric)
+    return CameraHits(p, normals, view, owner[tri[keep]], layout, tuple(notes), geometric, tri[keep])
 
 
 def camera_receiver_fields(hits: CameraHits, surfaces: Sequence[dict[str, Any] | None],

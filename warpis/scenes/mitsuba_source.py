@@ -21,7 +21,9 @@ warpis's arrays and hands them to the same gate as every other source (``_assemb
   shape it lies on.  A shape with any other BSDF is an occluder only: it blocks shadow
   rays, as every shape does in Mitsuba's ``direct`` integrator (its ``ray_test`` reads no
   BSDF: glass, a ``null`` BSDF and a ``mask`` of any opacity block alike), and a receiver
-  on it is an error, raised only then; a camera pixel that sees it is masked;
+  on it is an error, raised only then; a camera pixel that sees it is masked.  A texture
+  on a receiver's reflectance (or a roughconductor's alpha) is evaluated by Mitsuba at
+  the receiver's own surface point (``_texture_values``), a constant per receiver;
 * receivers: a TOML file beside the XML (``<stem>.receivers.toml``; README.md,
   "Mitsuba scenes") lists points on the scene's surfaces, or grids over planar shapes,
   and where the viewer is (default: the XML's first sensor).
@@ -89,9 +91,10 @@ ON_SURFACE = 1e-5
 NONE_ETA = 1e-6
 
 SUPPORTED_SHAPES = "triangle meshes (obj, ply, serialized, cube, ...), rectangle, sphere, disk and cylinder"
-SUPPORTED_BSDFS = ("diffuse, roughconductor and roughplastic with uniform parameters, alone or inside twosided "
-                   "(the same BSDF on both sides), on a shape that holds receivers (a shape without receivers "
-                   "may have any BSDF: it only blocks light, as in Mitsuba's direct integrator)")
+SUPPORTED_BSDFS = ("diffuse, roughconductor and roughplastic (uniform or textured reflectances, and a uniform or "
+                   "textured roughconductor alpha), alone or inside twosided (the same BSDF on both sides), on a "
+                   "shape that holds receivers (a shape without receivers may have any BSDF: it only blocks light, "
+                   "as in Mitsuba's direct integrator)")
 SUPPORTED_EMITTERS = "only area emitters (an <emitter type=\"area\"> inside a <shape>) with uniform radiance"
 
 _SHAPE_PLUGINS = {"OBJMesh": "obj", "PLYMesh": "ply", "SerializedMesh": "serialized", "Cube": "cube",
@@ -186,9 +189,9 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
     vertices, triangles, emission, owner = _concatenate(shapes)
     if lens is not None:
         rx, receiver_notes, under = _camera_receivers(lens, shapes, vertices, triangles, emission, owner, file,
-                                                      str(device))
+                                                      str(device), scene)
     else:
-        rx, receiver_notes, under = _receivers(side, shapes, vertices, triangles, owner, sensor, file, sidecar)
+        rx, receiver_notes, under = _receivers(side, shapes, vertices, triangles, owner, sensor, file, sidecar, scene)
     if channel == "y" and any(s.radiance is not None and not _grey(s.radiance) for s in shapes) and \
             any(not shapes[k].material.grey for k in under):
         notes.append("channel y multiplies the luminance of the emission by the luminance of the BSDF: with "
@@ -377,21 +380,32 @@ class _Material:
     # BSDF's name; "" for one it shades.  Such a shape is an occluder only.
     problem: str = ""
     unshaded: str = ""
+    # Parameters given by a texture, evaluated at each receiver: "albedo", "specular" or
+    # "alpha" → the Mitsuba Texture objects it comes from (alpha: alpha_u and alpha_v, or
+    # alpha), and how each reads in notes.  The field itself holds NaN until then.
+    textures: dict[str, tuple[Any, ...]] = field(default_factory=dict)
+    texture_text: dict[str, str] = field(default_factory=dict)
+    weights: Any = None  # the channel's weights, for textured colours
 
     def same(self, other: _Material) -> bool:
-        return (self.kind == other.kind and self.albedo == other.albedo and self.alpha == other.alpha
+        """The same material (a textured parameter: the same texture)."""
+        def equal(a: Any, b: Any) -> bool:
+            return bool(np.array_equal(a, b, equal_nan=True))
+        return (self.kind == other.kind and equal(self.albedo, other.albedo) and equal(self.alpha, other.alpha)
                 and self.distribution == other.distribution and self.sample_visible == other.sample_visible
-                and np.array_equal(self.eta, other.eta) and np.array_equal(self.k, other.k)
-                and np.array_equal(self.specular, other.specular) and self.specular_weight == other.specular_weight)
+                and equal(self.eta, other.eta) and equal(self.k, other.k) and equal(self.specular, other.specular)
+                and self.specular_weight == other.specular_weight and self.texture_text == other.texture_text)
 
     def check(self, where: str) -> None:
-        """The kernels' domain for this material's parameters."""
-        if self.kind in ("roughconductor", "roughplastic") and not MIN_ALPHA <= self.alpha <= 1e3:
+        """The kernels' domain for this material's parameters (textured ones: see _texture_values)."""
+        if (self.kind in ("roughconductor", "roughplastic") and "alpha" not in self.textures
+                and not MIN_ALPHA <= self.alpha <= 1e3):
             raise fail(where, f"{self.kind} alpha={self.alpha:g}: warpis supports roughness in [{MIN_ALPHA:g}, 1000]")
         if not (np.all(self.eta > 0) and np.all(self.eta <= 1e3) and np.all(self.k >= 0) and np.all(self.k <= 1e3)):
             raise fail(where, f"{self.kind} eta={_triple(self.eta)} k={_triple(self.k)}: warpis supports eta in "
                               f"(0, 1000] and k in [0, 1000]")
-        if not (np.all(self.specular >= 0) and np.all(self.specular <= 1e3) and 0 <= self.albedo <= 1e3):
+        specular_ok = "specular" in self.textures or (np.all(self.specular >= 0) and np.all(self.specular <= 1e3))
+        if not (specular_ok and ("albedo" in self.textures or 0 <= self.albedo <= 1e3)):
             raise fail(where, f"{self.kind}: reflectances must lie in [0, 1000] in every channel")
 
 
@@ -453,42 +467,93 @@ def _microfacet_options(fields: dict[str, str], where: str, plugin: str) -> tupl
 
 def _options_text(m: _Material) -> str:
     name = next(d for d, code in DISTRIBUTIONS.items() if code == m.distribution)
-    return f"{name} alpha={m.alpha:.6g} ({'visible normals' if m.sample_visible else 'all normals'})"
+    alpha = "" if "alpha" in m.textures else f" alpha={m.alpha:.6g}"
+    return f"{name}{alpha} ({'visible normals' if m.sample_visible else 'all normals'})"
+
+
+def _children(mi: Any, obj: Any) -> dict[str, Any]:
+    """The Mitsuba objects ``obj`` holds (its textures, nested BSDFs), by parameter name."""
+    found: dict[str, Any] = {}
+
+    class Children(mi.TraversalCallback):
+        def put(self, name: str, value: Any, flags: Any, *rest: Any) -> None:
+            if isinstance(value, mi.Object):
+                found[name] = value
+
+    obj.traverse(Children())
+    return found
+
+
+def _textured(fields: dict[str, str], name: str) -> bool:
+    """Whether the parameter ``name`` is given by a texture (not a uniform value)."""
+    text = fields.get(name)
+    return text is not None and text.split("[")[0].strip() not in _UNIFORM
+
+
+def _texture(fields: dict[str, str], objects: dict[str, Any], name: str) -> Any:
+    """The Texture object of the parameter ``name`` if it is not uniform (a texture warpis
+    evaluates at each receiver), else None."""
+    return objects.get(name) if _textured(fields, name) else None
 
 
 def _one_bsdf(cls: str, fields: dict[str, str], params: dict[str, Any], where: str, weights: np.ndarray,
-              notes: list[str]) -> _Material:
-    """One (not twosided) Mitsuba BSDF → a warpis material."""
+              notes: list[str], objects: dict[str, Any] | None = None) -> _Material:
+    """One (not twosided) Mitsuba BSDF → a warpis material.  A texture on a reflectance,
+    or on a roughconductor's alpha, is kept (``textures``) to be evaluated at each receiver."""
     plugin = _BSDF_PLUGINS.get(cls, cls)
+    objects = objects or {}
     if cls == "SmoothDiffuse":
+        tex = _texture(fields, objects, "reflectance")
+        if tex is not None:
+            name = _texture_name(fields["reflectance"])
+            return _Material("lambert", f"diffuse reflectance from a {name!r} texture", albedo=math.nan,
+                             textures={"albedo": (tex,)}, texture_text={"albedo": fields["reflectance"]})
         rgb = _colour(fields, params, "reflectance", where, plugin)
         albedo = float(weights @ rgb)
         return _Material("lambert", f"diffuse albedo={albedo:.6g}", albedo=albedo, grey=_grey(rgb))
     if cls == "RoughConductor":
         distribution, visible = _microfacet_options(fields, where, plugin)
-        for name in ("alpha_u", "alpha_v"):
-            if not _uniform(fields, name, where, plugin):
-                raise fail(where, f"{plugin}: cannot read its {name}")
-        try:
-            alpha_u, alpha_v = ((float(params["alpha.value"]),) * 2 if "alpha.value" in params else
-                                (float(params["alpha_u.value"]), float(params["alpha_v.value"])))
-        except KeyError:
-            raise fail(where, f"{plugin}: cannot read its alpha") from None
-        if alpha_u != alpha_v:
+        textures: dict[str, tuple[Any, ...]] = {}
+        texture_text: dict[str, str] = {}
+        if _textured(fields, "alpha_u") or _textured(fields, "alpha_v"):
+            keys = ("alpha",) if "alpha" in objects else ("alpha_u", "alpha_v")
+            if not all(key in objects for key in keys):
+                raise fail(where, f"{plugin}: cannot read its alpha texture")
+            textures["alpha"] = tuple(objects[key] for key in keys)
+            texture_text["alpha"] = " / ".join(fields.get(n, "") for n in ("alpha_u", "alpha_v"))
+            alpha_u = alpha_v = math.nan
+        else:
+            for name in ("alpha_u", "alpha_v"):
+                if not _uniform(fields, name, where, plugin):
+                    raise fail(where, f"{plugin}: cannot read its {name}")
+            try:
+                alpha_u, alpha_v = ((float(params["alpha.value"]),) * 2 if "alpha.value" in params else
+                                    (float(params["alpha_u.value"]), float(params["alpha_v.value"])))
+            except KeyError:
+                raise fail(where, f"{plugin}: cannot read its alpha") from None
+        if alpha_u != alpha_v and "alpha" not in textures:
             raise fail(where, f"{plugin}: anisotropic roughness alpha_u={alpha_u:.6g}, alpha_v={alpha_v:.6g}; "
                               f"warpis supports an isotropic alpha only")
         eta = _colour(fields, params, "eta", where, plugin)
         k = _colour(fields, params, "k", where, plugin)
-        specular = _colour(fields, params, "specular_reflectance", where, plugin, default=1.0)
+        tex = _texture(fields, objects, "specular_reflectance")
+        if tex is not None:
+            textures["specular"] = (tex,)
+            texture_text["specular"] = fields["specular_reflectance"]
+            specular = np.full(3, math.nan)
+        else:
+            specular = _colour(fields, params, "specular_reflectance", where, plugin, default=1.0)
         if np.any(eta == 0):
             notes.append(f"roughconductor eta=0 (Mitsuba's material \"none\" is eta=0, k=1, a perfect mirror) "
                          f"taken as eta={NONE_ETA:g}: its Fresnel term stays within 2e-6 of Mitsuba's")
             eta = np.where(eta == 0, NONE_ETA, eta)
         m = _Material("roughconductor", "", alpha=alpha_u, distribution=distribution,
                       sample_visible=visible, eta=eta, k=k, specular=weights * specular,
-                      grey=_grey(eta) and _grey(k) and _grey(specular))
+                      grey=_grey(eta) and _grey(k) and _grey(specular), textures=textures, texture_text=texture_text)
         m.text = (f"roughconductor {_options_text(m)} eta={_triple(eta)} k={_triple(k)}"
-                  + ("" if np.all(specular == 1) else f" specular_reflectance={_triple(specular)}"))
+                  + ("" if "specular" in textures or np.all(specular == 1) else
+                     f" specular_reflectance={_triple(specular)}")
+                  + _textures_text(texture_text, {"alpha": "alpha", "specular": "specular_reflectance"}))
         return m
     if cls == "RoughPlastic":
         distribution, visible = _microfacet_options(fields, where, plugin)
@@ -496,18 +561,45 @@ def _one_bsdf(cls: str, fields: dict[str, str], params: dict[str, Any], where: s
             raise fail(where, f"{plugin}: nonlinear=true; warpis supports the linear roughplastic only")
         alpha = _scalar(params, "alpha", where, plugin)
         eta = _scalar(params, "eta", where, plugin)
-        diffuse = _colour(fields, params, "diffuse_reflectance", where, plugin)
-        specular = _colour(fields, params, "specular_reflectance", where, plugin, default=1.0)
-        d_mean, s_mean = float(diffuse.mean()), float(specular.mean())
+        textures, texture_text, means = {}, {}, []
+        for field_name, name in (("albedo", "diffuse_reflectance"), ("specular", "specular_reflectance")):
+            tex = _texture(fields, objects, name)
+            if tex is not None:
+                textures[field_name] = (tex,)
+                texture_text[field_name] = fields[name]
+                means.append(float(tex.mean()))  # Mitsuba's specular_sampling_weight takes the texture's mean
+        diffuse = (np.full(3, math.nan) if "albedo" in textures else
+                   _colour(fields, params, "diffuse_reflectance", where, plugin))
+        specular = (np.full(3, math.nan) if "specular" in textures else
+                    _colour(fields, params, "specular_reflectance", where, plugin, default=1.0))
+        d_mean = means.pop(0) if "albedo" in textures else float(diffuse.mean())
+        s_mean = means.pop(0) if "specular" in textures else float(specular.mean())
         # Mitsuba's specular_sampling_weight: the lobe choice, from the RGB means.
         weight = s_mean / (d_mean + s_mean) if d_mean + s_mean > 0 else 0.5
         m = _Material("roughplastic", "", albedo=float(weights @ diffuse), alpha=alpha, distribution=distribution,
                       sample_visible=visible, eta=np.full(3, eta), k=np.zeros(3), specular=weights * specular,
-                      specular_weight=weight, grey=_grey(diffuse) and _grey(specular))
-        m.text = (f"roughplastic {_options_text(m)} eta={eta:.6g} albedo={m.albedo:.6g} "
-                  f"specular={float(m.specular.sum()):.6g} specular_weight={weight:.6g}")
+                      specular_weight=weight, grey=_grey(diffuse) and _grey(specular), textures=textures,
+                      texture_text=texture_text)
+        m.text = (f"roughplastic {_options_text(m)} eta={eta:.6g}"
+                  + ("" if "albedo" in textures else f" albedo={m.albedo:.6g}")
+                  + ("" if "specular" in textures else f" specular={float(m.specular.sum()):.6g}")
+                  + f" specular_weight={weight:.6g}"
+                  + _textures_text(texture_text, {"albedo": "diffuse_reflectance", "specular": "specular_reflectance"}))
         return m
     raise fail(where, f"BSDF {plugin!r} is not supported; warpis supports {SUPPORTED_BSDFS}")
+
+
+def _textures_text(texture_text: dict[str, str], names: dict[str, str]) -> str:
+    """How a material's textured parameters read in notes."""
+    return "".join(f" {names[f]} from a {_texture_name(_first_texture(t))!r} texture" for f, t in texture_text.items())
+
+
+def _first_texture(text: str) -> str:
+    """The first non-uniform of the ' / '-joined texture descriptions (alpha_u / alpha_v)."""
+    for part in text.split(" / "):
+        if part.split("[")[0].strip() not in _UNIFORM:
+            return part
+    return text
 
 
 def _material(mi: Any, bsdf: Any, where: str, weights: np.ndarray, notes: list[str]) -> _Material:
@@ -532,14 +624,18 @@ def _shaded_material(mi: Any, bsdf: Any, where: str, weights: np.ndarray, notes:
     params = _params(mi, bsdf)
     _, fields = _fields(str(bsdf))
     cls = bsdf.class_name()
+    objects = _children(mi, bsdf)
     if _BSDF_PLUGINS.get(cls) != "twosided":
-        return _one_bsdf(cls, fields, params, where, weights, notes)
+        return replace(_one_bsdf(cls, fields, params, where, weights, notes, objects), weights=weights)
     sides = []
     for i in (0, 1):
         side_cls, side_fields = _fields(fields.get(f"brdf[{i}]", ""))
         prefix = f"brdf_{i}." if any(key.startswith(f"brdf_{i}.") for key in params) else "brdf_0."
         side_params = {key[len(prefix):]: value for key, value in params.items() if key.startswith(prefix)}
-        sides.append(_one_bsdf(side_cls, side_fields, side_params, where, weights, notes))
+        side = objects.get(f"brdf_{i}", objects.get("brdf_0"))
+        sides.append(_one_bsdf(side_cls, side_fields, side_params, where, weights, notes,
+                               _children(mi, side) if side is not None else {}))
+        sides[-1].weights = weights
     if not sides[0].same(sides[1]):
         raise fail(where, f"twosided with a different BSDF on each side ({sides[0].text}; {sides[1].text}); warpis "
                           f"supports twosided around one BSDF")
@@ -1013,10 +1109,11 @@ def _analytic_pixels(hits: Any, shapes: list[_Shape]) -> Any:
 
 
 def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray, triangles: np.ndarray,
-                      emission: np.ndarray, owner: np.ndarray, file: Path, device: str
+                      emission: np.ndarray, owner: np.ndarray, file: Path, device: str, mitsuba_scene: Any = None
                       ) -> tuple[Receivers, list[str], np.ndarray]:
-    """The camera's pixels as receivers, each with the material of the shape it sees and
-    Mitsuba's shading normal there."""
+    """The camera's pixels as receivers, each with the material of the shape it sees (a
+    textured parameter evaluated by Mitsuba at the pixel's own point) and Mitsuba's
+    shading normal there."""
     unshaded = [f"shape {s.label!r} ({s.material.unshaded})" if s.material.problem else None for s in shapes]
     hits = cast_camera(camera, vertices, triangles, emission, owner, [s.material.twosided for s in shapes], device,
                        _corner_normals(shapes, vertices, triangles), unshaded)
@@ -1030,8 +1127,19 @@ def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray
                 for s in shapes]
     # Every shape has a material (an emitter's is its shell's); one warpis cannot shade
     # has its pixels masked, so it is never a receiver's.
-    rx = Receivers(**camera_receiver_fields(hits, surfaces, lambda m, c: shapes[m].material.problem, file))
-    notes = [camera.describe(), hits.layout.describe(), *hits.notes]
+    fields = camera_receiver_fields(hits, surfaces, lambda m, c: shapes[m].material.problem, file)
+    starts = np.cumsum([0] + [len(s.faces) for s in shapes])
+    curved = np.array([s.analytic_normal is not None for s in shapes])[hits.mesh][:, None]
+    diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    textured, texture_notes = _texture_values(
+        mitsuba_scene, file, shapes, hits.mesh, hits.triangles - starts[hits.mesh], hits.positions,
+        np.where(curved, hits.normals, hits.geometric_normals), ON_SURFACE * diagonal,
+        lambda i: f"{file}: camera pixel {int(hits.layout.pixel[i])} (row-major)")
+    for name, (at, values) in textured.items():
+        fields[name] = fields[name].copy()
+        fields[name][at] = values
+    rx = Receivers(**fields)
+    notes = [camera.describe(), hits.layout.describe(), *hits.notes, *texture_notes]
     masked = hits.layout.masked_counts()
     if masked["back"]:
         notes.append(f"{masked['back']} pixel(s) see the back of a one-sided BSDF (Mitsuba returns 0 there): masked")
@@ -1344,10 +1452,10 @@ def _grid(group: dict[str, Any], shapes: list[_Shape], base: float, sidecar: Pat
 
 
 def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray, triangles: np.ndarray,
-               owner: np.ndarray, sensor: _Viewer | str | None, file: Path, sidecar: Path
-               ) -> tuple[Receivers, list[str], np.ndarray]:
+               owner: np.ndarray, sensor: _Viewer | str | None, file: Path, sidecar: Path,
+               mitsuba_scene: Any = None) -> tuple[Receivers, list[str], np.ndarray]:
     """The receivers of the receivers file on the scene's surfaces, notes about them, and
-    the shapes they lie on."""
+    the shapes they lie on (``mitsuba_scene``: Mitsuba's, which evaluates textures)."""
     tris = vertices[triangles]
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -1357,7 +1465,8 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
     tol = base + np.array([s.deviation for s in shapes])[owner]
     emitter = np.array([s.radiance is not None for s in shapes])[owner]
     notes: list[str] = []
-    rows: dict[str, list[Any]] = {k: [] for k in ("positions", "normals", "geometric", "view", "shape", "group")}
+    rows: dict[str, list[Any]] = {k: [] for k in ("positions", "normals", "geometric", "view", "shape", "group",
+                                                  "triangle", "off")}
     grid_shape = None
     viewers_used: set[str] = set()
     for g, group in enumerate(side["groups"]):
@@ -1403,9 +1512,9 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
             normals_front = np.tile(n, (len(points), 1))
             if len(side["groups"]) == 1:
                 grid_shape = shape_rc
-        shading_front, shading_notes = _shading_normals(
-            f"{sidecar}: {where}", shapes, shape_of, index if group["points"] is not None else mine[index], points,
-            tris, normals_front)
+        triangle = index if group["points"] is not None else mine[index]
+        shading_front, shading_notes = _shading_normals(f"{sidecar}: {where}", shapes, shape_of, triangle, points,
+                                                        tris, normals_front)
         notes += shading_notes
         towards = viewer.towards(points)
         length = np.linalg.norm(towards, axis=1)
@@ -1448,6 +1557,10 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
         rows["view"].append(view)
         rows["shape"].append(shape_of)
         rows["group"].append(np.full(len(points), g, np.int32))
+        rows["triangle"].append(triangle)
+        # Off the surface on the viewer's side: along the analytic normal of a curved shape, else the triangle's.
+        curved = np.array([shapes[k].analytic_normal is not None for k in shape_of])[:, None]
+        rows["off"].append(np.where(facing[:, None], 1.0, -1.0) * np.where(curved, shading_front, normals_front))
     for what in sorted(viewers_used):
         notes.append(f"receivers seen from {what}")
     shape_of = np.concatenate(rows["shape"])
@@ -1457,26 +1570,117 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
     def per_receiver(name: str, kind: Any = np.float64) -> np.ndarray:
         return np.array([getattr(m, name) for m in materials], kind)[shape_of]
 
+    positions = np.vstack(rows["positions"])
+    starts = np.cumsum([0] + [len(s.faces) for s in shapes])
+    group_of = np.concatenate(rows["group"])
+    first = np.cumsum([0] + [len(x) for x in rows["group"]])
+    textured, texture_notes = _texture_values(
+        mitsuba_scene, file, shapes, shape_of, np.concatenate(rows["triangle"]) - starts[shape_of], positions,
+        np.vstack(rows["off"]), base,
+        lambda i: f"{sidecar}: {side['groups'][group_of[i]]['where']} point {i - first[group_of[i]]}")
+    notes += texture_notes
+    columns = {name: per_receiver(name) for name in ("albedo", "alpha", "specular")}
+    for name, (at, values) in textured.items():
+        columns[name][at] = values
+
     rx = Receivers(
-        positions=np.vstack(rows["positions"]),
+        positions=positions,
         normals=np.vstack(rows["normals"]),
         geometric_normals=np.vstack(rows["geometric"]),
         material=np.array([MATERIALS[m.kind].code for m in materials], np.int32)[shape_of],
-        albedo=per_receiver("albedo"),
+        albedo=columns["albedo"],
         exponent=np.ones(len(shape_of)),
         view=np.vstack(rows["view"]),
         group=np.concatenate(rows["group"]),
         group_names=[g["name"] for g in side["groups"]],
         grid_shape=grid_shape,
-        alpha=per_receiver("alpha"),
+        alpha=columns["alpha"],
         distribution=per_receiver("distribution", np.int32),
         sample_visible=per_receiver("sample_visible", np.int32),
         eta=per_receiver("eta"),
         k=per_receiver("k"),
-        specular=per_receiver("specular"),
+        specular=columns["specular"],
         specular_weight=per_receiver("specular_weight"),
     )
     return rx, notes, np.unique(shape_of)
+
+
+def _texture_values(mitsuba_scene: Any, file: Path, shapes: list[_Shape], shape_of: np.ndarray, faces: np.ndarray,
+                    points: np.ndarray, towards: np.ndarray, base: float, where: Any
+                    ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], list[str]]:
+    """Textured BSDF parameters at each receiver on a textured shape, evaluated by Mitsuba
+    itself: the surface interaction of a short ray at the point along ``towards`` (a
+    unit vector off the surface on the viewer's side) against the receiver's own shape
+    (its own triangle, on a mesh), then each texture's ``eval`` (``eval_1`` for alpha, as
+    Mitsuba's roughconductor reads it) there.  ``faces`` holds each receiver's triangle
+    within its shape; ``where(i)`` names receiver i in messages.  Returns, per field
+    ("albedo", "specular", "alpha"), the receivers' rows and their values, and notes."""
+    out: dict[str, tuple[list[int], list[Any]]] = {}
+    notes: list[str] = []
+    textured = [int(k) for k in np.unique(shape_of) if shapes[k].material.textures]
+    if not textured:
+        return {}, notes
+    if mitsuba_scene is None:
+        raise fail(file, f"shape {shapes[textured[0]].label!r} has a textured BSDF, which needs Mitsuba's scene")
+    with _Mitsuba(file) as session:
+        mi = session.mi
+        mitsuba_shapes = list(mitsuba_scene.shapes())
+        for k in textured:
+            s, ms = shapes[k], mitsuba_shapes[k]
+            m = s.material
+            rows = np.flatnonzero(shape_of == k)
+            reach = 10.0 * base + 2.0 * s.deviation
+            values: dict[str, list[Any]] = {name: [] for name in m.textures}
+            mesh = int(ms.shape_type()) == int(mi.ShapeType.Mesh)
+            for r in rows.tolist():
+                p, n = points[r], towards[r]
+                ray = mi.Ray3f(mi.Point3f(*(p + reach * n)), mi.Vector3f(*(-n)))
+                if mesh:  # its own triangle (warpis keeps a mesh's faces in Mitsuba's order)
+                    hit = ms.ray_intersect_triangle(int(faces[r]), ray)
+                    si = hit.compute_surface_interaction(ray) if hit.is_valid() else None
+                else:
+                    si = ms.ray_intersect(ray)
+                if si is None or not si.is_valid() or not np.linalg.norm(np.array(si.p) - p) <= reach + base:
+                    raise fail(where(r), f"Mitsuba finds no surface of shape {s.label!r} at {_triple3(p)} to evaluate "
+                                         f"its BSDF's textures at")
+                for name, textures in m.textures.items():
+                    if name == "alpha":
+                        alpha = [float(t.eval_1(si)) for t in textures]
+                        if len(alpha) == 2 and alpha[0] != alpha[1]:
+                            raise fail(where(r), f"shape {s.label!r}: roughconductor alpha_u={alpha[0]:.6g}, "
+                                                 f"alpha_v={alpha[1]:.6g} at {_triple3(p)} (anisotropic); warpis "
+                                                 f"supports an isotropic alpha only")
+                        values[name].append(alpha[0])
+                    else:
+                        values[name].append(_rgb(textures[0].eval(si)))
+            for name, got in values.items():
+                label = {"albedo": "diffuse reflectance", "specular": "specular reflectance", "alpha": "alpha"}[name]
+                if name == "alpha":
+                    v = np.array(got, np.float64)
+                    bad = ~((v >= MIN_ALPHA) & (v <= 1e3))
+                    domain = f"roughness in [{MIN_ALPHA:g}, 1000]"
+                else:
+                    rgb = np.array(got, np.float64)
+                    if not all(_grey(c) for c in rgb):
+                        m.grey = False
+                    v = rgb @ m.weights if name == "albedo" else rgb * m.weights
+                    bad = ~np.all((rgb >= 0) & (rgb <= 1e3), axis=1)
+                    domain = "reflectances in [0, 1000] in every channel"
+                if bad.any():
+                    i = int(rows[np.argmax(bad)])
+                    value = got[int(np.argmax(bad))]
+                    shown = f"{value:.6g}" if name == "alpha" else _triple3(value)
+                    raise fail(where(i), f"shape {s.label!r}: its {label} texture is {shown} at "
+                                         f"{_triple3(points[i])}; warpis supports {domain}")
+                out.setdefault(name, ([], []))
+                out[name][0].extend(rows.tolist())
+                out[name][1].extend(list(v))
+                shown = v if v.ndim == 1 else v.sum(axis=1)
+                notes.append(f"{s.label}: {len(rows)} receiver(s) take its {label} from its "
+                             f"{_texture_name(_first_texture(m.texture_text[name]))!r} texture at their own point "
+                             f"(Mitsuba's eval there): {float(shown.min()):.6g} to {float(shown.max()):.6g}"
+                             + (" in this channel" if name != "alpha" else ""))
+    return {name: (np.array(r, np.int64), np.array(v, np.float64)) for name, (r, v) in out.items()}, notes
 
 
 def _check_shaded(shapes: list[_Shape], shape_of: np.ndarray, points: np.ndarray, where: str) -> None:
