@@ -14,7 +14,8 @@ Checked here, against Mitsuba (``scalar_rgb``) itself:
   bitmap roughplastic and a bitmap roughconductor (specular and alpha), for points,
   grids and camera pixels;
 * f at the receivers of the bitmap materials: ``evaluate_integrand`` against Mitsuba's
-  Le × ``bsdf.eval`` in directions its emitter sampling draws: relative error ≤ 1e-4;
+  Le × ``bsdf.eval`` in directions its emitter sampling draws, and the ``bsdf``
+  technique's density against ``bsdf.pdf`` there: relative error ≤ 1e-4;
 * F against Mitsuba's ``direct`` integrator (``mi.render`` of a radiancemeter looking at
   each point from the receiver's viewer; ``SEEDS`` renders of ``SPP`` samples, mean and
   the standard error of their spread, 31 degrees of freedom) within Z = 4.5 combined
@@ -40,6 +41,7 @@ from conftest import one_error_line  # noqa: E402
 from warpis.analysis.reference import reference  # noqa: E402
 from warpis.errors import WarpisError  # noqa: E402
 from warpis.kernels.integrand import evaluate_integrand  # noqa: E402
+from warpis.kernels.techniques import direction_pdf  # noqa: E402
 from warpis.scenes.mitsuba_source import CHANNELS, load_mitsuba  # noqa: E402
 
 REL_ERROR = 2e-4
@@ -209,6 +211,12 @@ def test_bitmap_parameters_and_f_are_mitsubas(bitmaps, material):
         rel = np.abs(f - np.array(ref)) / np.abs(np.array(ref))
         assert rel.max() <= F_RTOL, (material, i, float(rel.max()))
         worst = max(worst, float(rel.max()))
+        # The bsdf technique's density is Mitsuba's bsdf.pdf (for roughplastic, its lobe
+        # choice from the texture's mean, as Mitsuba's specular_sampling_weight).
+        world = np.array(dirs, np.float32)
+        pdf = direction_pdf(scene, i, "bsdf", world)
+        want = np.array([bsdf.pdf(ctx, si, si.to_local(mi.Vector3f(*d))) for d in world.tolist()])
+        np.testing.assert_allclose(pdf, want, rtol=F_RTOL, err_msg=f"{material} {i}")
     if material == "conductor":
         assert len(set(np.round(rx.alpha, 6))) == len(points) and (rx.alpha > 0.08 - 1e-6).all()
         assert len(set(np.round(rx.specular[:, 1], 6))) == len(points)
