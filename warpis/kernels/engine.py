@@ -32,7 +32,7 @@ from ..analysis.stats import SampleMoments
 from ..errors import WarpisError
 from .device import DeviceScene, upload
 from .estimators import Estimator, KernelArgs, parse_estimator, pilot_kernel_for_registry, trial_kernel_for_registry
-from .techniques import light_table
+from .techniques import check_lights, light_table
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes import Scene
@@ -120,6 +120,7 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     seed = limits.seed(seed)
     args = KernelArgs.of(est, n)
     rx = select_receivers(scene, receivers)
+    check_lights(scene, est.techniques)
     up = upload(scene)
     dev = up.device
     head = (up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))

@@ -7,8 +7,13 @@ emission, which is also how visibility V enters), and ρ is 1 (irradiance), albe
 the mirror direction of the view, or one of Mitsuba 3's microfacet BSDFs (roughconductor,
 roughplastic; :mod:`.microfacet`) divided by its cosine factor.
 
+A ray that hits nothing sees the scene's environment light, if it has one (Mitsuba's
+envmap lookup, :mod:`.environment`), else nothing.
+
 How a value is found: only emitters have Le > 0, so the first triangle the ray hits
 matters only if it is an emitter, and then it is the nearest emitter the ray crosses.
+With an environment every ray that crosses no emitter may still bring light, so f asks
+one closest-hit query instead.
 f therefore takes the nearest crossing with an emitter triangle (a loop over them, or
 their own small BVH: :mod:`.emitters`), and f = 0 at once when there is none or it is a
 back face; else one shadow ray, an any-hit query (:mod:`.bvh`) over the segment up to
@@ -49,6 +54,7 @@ from ..vocabulary import Material, Registry
 from .bvh import SELF_HIT, any_hit_between, closest_hit_from
 from .device import ReceiverData, SceneData, upload
 from .emitters import nearest_emitter
+from .environment import environment_radiance
 from .microfacet import conductor_brdf, plastic_brdf
 from .shading import ShadingPoint, with_frame
 from .warps import INV_2PI, INV_PI
@@ -192,7 +198,7 @@ def incident_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
     directions cross no emitter and cast no ray); elsewhere one closest-hit query, which
     for sphere lights and emitters in several planes costs less than finding the nearest
     crossing among many emitter triangles first."""
-    if scene.planar_emitters != 0:
+    if scene.planar_emitters != 0 and scene.environment.present == 0:
         return radiance_beyond(scene, p, wp.vec3(0.0), w, 0.0)  # p is on no surface: no plane of its own
     return closest_radiance(scene, p, wp.vec3(0.0), w, 0.0)
 
@@ -201,9 +207,11 @@ def incident_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
 def closest_radiance(scene: SceneData, p: wp.vec3, n: wp.vec3, w: wp.vec3, lead: float) -> float:
     """Le of the first surface the ray (p, ω) hits beyond distance ``lead``, from one
     closest-hit query (hits on the plane through p of normal n are rounding, and are
-    ignored; n = 0 for a p on no surface)."""
+    ignored; n = 0 for a p on no surface); the environment's radiance if it hits none."""
     hit = closest_hit_from(scene.bvh, scene.mesh, p, n, p + lead * w, w, FAR)
-    if hit.face < 0 or hit.sign <= 0.0:  # a miss, or a back face: emission is one-sided
+    if hit.face < 0:  # the ray leaves the scene
+        return environment_radiance(scene.environment, w)
+    if hit.sign <= 0.0:  # a back face: emission is one-sided
         return 0.0
     return scene.tri_emission[hit.face]
 
@@ -231,7 +239,9 @@ def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int3
     # One call site per query: each is inlined wherever f is, and the trial kernel has f
     # in several places.
     le = float(0.0)
-    if known < 0 and scene.planar_emitters == 0:
+    # With an environment, a ray that crosses no emitter may still bring light: one
+    # closest-hit query says what it sees.
+    if known < 0 and (scene.planar_emitters == 0 or scene.environment.present != 0):
         le = closest_radiance(scene, sp.p, sp.ng, w, lead)
     else:
         k = known

@@ -43,6 +43,7 @@ from ..errors import fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
 from .camera import SURFACE_FIELDS, Camera, camera_receiver_fields, cast_camera, image_side
+from .environment import Environment
 from .normals import interpolate_normals
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
                           _unit)
@@ -88,7 +89,9 @@ NONE_ETA = 1e-6
 SUPPORTED_SHAPES = "triangle meshes (obj, ply, serialized, cube, ...), rectangle, sphere, disk and cylinder"
 SUPPORTED_BSDFS = ("diffuse, roughconductor and roughplastic with uniform parameters, alone or inside twosided "
                    "(the same BSDF on both sides)")
-SUPPORTED_EMITTERS = "only area emitters (an <emitter type=\"area\"> inside a <shape>) with uniform radiance"
+SUPPORTED_EMITTERS = ("area emitters (an <emitter type=\"area\"> inside a <shape>) with uniform radiance, an envmap "
+                      "(a rotation as its to_world) and a constant emitter of uniform radiance")
+_ENVIRONMENTS = {"EnvironmentMapEmitter", "ConstantBackgroundEmitter"}
 
 _SHAPE_PLUGINS = {"OBJMesh": "obj", "PLYMesh": "ply", "SerializedMesh": "serialized", "Cube": "cube",
                   "Rectangle": "rectangle", "Sphere": "sphere", "Disk": "disk", "Cylinder": "cylinder",
@@ -173,7 +176,8 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
     weights = np.array(CHANNELS[channel])
     with _Mitsuba(file) as session:
         scene = session.load()
-        shapes = _shapes(session, scene, file, weights)
+        environment = _environment(session.mi, scene, file, weights)
+        shapes = _shapes(session, scene, file, weights, lit=environment is not None)
         sensor = _sensor(session.mi, scene)
         lens = _camera(session.mi, scene, file, width, height) if camera else None
         notes = [f"colour channel {channel}: {_CHANNEL_WORDS[channel]}"]
@@ -192,13 +196,16 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
                      "which each of the channels r, g and b matches")
     for s in shapes:
         notes += s.notes
+    if environment is not None:
+        notes += environment.notes
     notes += receiver_notes
     name = side["name"] or (file.parent.name if file.name == "scene.xml" else file.stem)
-    hint = f"give some <shape> an <emitter type=\"area\"> with a radiance > 0 in channel {channel}"
+    hint = (f"give some <shape> an <emitter type=\"area\">, or the scene an envmap or constant emitter, with a "
+            f"radiance > 0 in channel {channel}")
     return _assemble(file, lambda m: f"{file}: shape {label[m]!r}", hint, name=name, vertices=vertices,
                      triangles=triangles, emission=emission, receivers=rx, triangle_mesh=owner,
                      mesh_names=[s.label for s in shapes], description=side["description"], device=str(device),
-                     path=file, notes=tuple(notes))
+                     path=file, notes=tuple(notes), environment=environment)
 
 
 # ----------------------------------------------------------------------------- Mitsuba
@@ -546,11 +553,12 @@ class _Shape:
     notes: list[str] = field(default_factory=list)
 
 
-def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray) -> list[_Shape]:
+def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray, lit: bool = False) -> list[_Shape]:
+    """The scene's shapes; ``lit``: an environment lights the scene, so it needs no area emitter."""
     mi = session.mi
     for emitter in scene.emitters():
         cls = emitter.class_name()
-        if cls != "AreaLight":
+        if cls != "AreaLight" and cls not in _ENVIRONMENTS:
             name = f"{emitter.id()!r} ({_EMITTER_PLUGINS.get(cls, cls)})" if emitter.id() else \
                 repr(_EMITTER_PLUGINS.get(cls, cls))
             raise fail(file, f"emitter {name}: warpis supports {SUPPORTED_EMITTERS}")
@@ -581,10 +589,65 @@ def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray) -> l
                                f"area)")
         s.notes += [f"{label}: {note}" for note in dict.fromkeys(notes)]
         out.append(s)
-    if not any(s.radiance is not None for s in out):
+    if not lit and not any(s.radiance is not None for s in out):
         raise fail(file, f"the scene has no emitter: warpis needs at least one <shape> with an "
-                         f"<emitter type=\"area\"> ({SUPPORTED_EMITTERS})")
+                         f"<emitter type=\"area\">, or an envmap or constant emitter ({SUPPORTED_EMITTERS})")
     return out
+
+
+def _environment(mi: Any, scene: Any, file: Path, weights: np.ndarray) -> Environment | None:
+    """The scene's envmap or constant emitter as warpis's Environment (one at most), its
+    table exactly the one Mitsuba looks up (scenes/environment.py)."""
+    found = [e for e in scene.emitters() if e.class_name() in _ENVIRONMENTS]
+    if not found:
+        return None
+    if len(found) > 1:
+        raise fail(file, f"{len(found)} environment emitters: warpis supports one envmap or constant emitter")
+    emitter = found[0]
+    cls = emitter.class_name()
+    plugin = _EMITTER_PLUGINS[cls]
+    where = f"{file}: emitter {emitter.id()!r} ({plugin})" if emitter.id() else f"{file}: emitter {plugin!r}"
+    params = _params(mi, emitter)
+    _, fields = _fields(str(emitter))
+    if cls == "ConstantBackgroundEmitter":
+        rgb = _colour(fields, params, "radiance", where, plugin)
+        if np.any(rgb < 0):
+            raise fail(where, f"{plugin}: radiance {rgb.tolist()} is negative in some channel")
+        texels, rotation = np.full((3, 2), float(weights @ rgb)), np.eye(3)
+        text = f"constant environment, radiance {float(weights @ rgb):.6g} (linear sRGB {_triple(rgb)})"
+    else:
+        texels = _envmap_texels(params, fields, where) @ weights * float(params["scale"])
+        m = _matrix(params["to_world"])
+        rotation = m[:3, :3]
+        if not np.all(np.isfinite(m)) or not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-5):
+            raise fail(where, f"{plugin}: its to_world is not a rotation (it scales or shears; Mitsuba does not "
+                              f"normalise a <rotate> axis): warpis supports rotations of the map")
+        if np.any(texels < 0) or not np.all(np.isfinite(texels)):
+            raise fail(where, f"{plugin}: its radiance must be finite and non-negative in every texel")
+        text = f"envmap {fields.get('filename', '<bitmap>').strip(chr(34))}"
+    env = Environment(texels=texels, rotation=rotation, kind=plugin, label=where)
+    width, height = env.resolution
+    note = (f"{text}: {width} × {height} texels, ∫ L dω = {env.power:.6g} over the sphere, its brightest 1% of "
+            f"texels carry {100 * env.brightest_share():.3g}% of it")
+    return Environment(texels=texels, rotation=rotation, kind=plugin, label=where, notes=(note,))
+
+
+def _envmap_texels(params: dict[str, Any], fields: dict[str, str], where: str) -> np.ndarray:
+    """(H, W, 3) linear sRGB of an envmap's bitmap, from the table Mitsuba looks up: it
+    pads the bitmap with copies of its edge columns, one before (3.9) or none, and one
+    after (scenes/environment.py)."""
+    data = np.asarray(params["data"], dtype=np.float64)
+    match = re.search(r"\[(\d+),\s*(\d+)\]", fields.get("res", ""))
+    width = int(match.group(1)) if match else data.shape[1] - 2
+    if data.ndim != 3 or data.shape[2] < 3:
+        raise fail(where, f"envmap: Mitsuba's table has shape {data.shape}; warpis expects (H, W, 3) in scalar_rgb")
+    if data.shape[1] == width + 2 and np.array_equal(data[:, 0], data[:, width]) \
+            and np.array_equal(data[:, width + 1], data[:, 1]):
+        return data[:, 1:width + 1, :3]
+    if data.shape[1] == width + 1 and np.array_equal(data[:, width], data[:, 0]):
+        return data[:, :width, :3]
+    raise fail(where, f"envmap: Mitsuba's table ({data.shape[1]} columns for a bitmap {width} wide) is not laid out "
+                      f"as warpis reads it")
 
 
 def _radiance(mi: Any, emitter: Any, where: str, weights: np.ndarray) -> tuple[np.ndarray, float]:
