@@ -32,6 +32,7 @@ scene lit by both an environment and an emitter triangle set.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -181,6 +182,10 @@ def test_info_describes_the_map(cli, folder, scenes):
     assert "48 × 24 texels" in line and f"{env.power:.6g}" in line, line
     share = env.brightest_share()
     assert 0.1 < share < 0.9 and f"{100 * share:.3g}%" in line, line
+    assert "environment (envmap): 48 × 24 texels" in result.out
+    data = json.loads(cli("info", str(folder / "scene.xml"), "--json").out)["environment"]
+    assert data["resolution"] == [48, 24] and data["power"] == pytest.approx(env.power)
+    assert data["brightest_1_percent_share"] == pytest.approx(share)
 
 
 def test_constant_environment_is_albedo_times_radiance(tmp_path):
@@ -300,3 +305,18 @@ def test_a_scene_lit_only_by_an_environment_runs(tmp_path):
         means.append((float(est.mean[0]), float(est.mean_stderr[0])))
     (a, sa), (b, sb), (c, sc) = means
     assert abs(a - b) <= Z * math.hypot(sa, sb) and abs(a - c) <= Z * math.hypot(sa, sc), means
+
+
+def test_light_techniques_alone_miss_the_environment(cli, folder, scenes):
+    """On a scene lit by an envmap and a lamp, light sampling alone estimates only the
+    lamp's part of F, and envmap alone misses the lamp where the map is dark: refused."""
+    xml = str(folder / "scene.xml")
+    line = one_error_line(cli("estimate", xml, "--estimator", "independent:single:light-solid-angle", "--n", "4",
+                              "--trials", "10"))
+    assert "miss the environment light" in line, line
+    line = one_error_line(cli("estimate", xml, "--estimator", "independent:single:envmap", "--n", "4", "--trials",
+                              "10"))
+    assert "misses the emitter triangles" in line, line
+    result = cli("estimate", xml, "--estimator", "independent:balance:light-solid-angle+envmap", "--n", "4",
+                 "--trials", "10")
+    assert result.status == 0, result.err

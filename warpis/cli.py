@@ -142,7 +142,12 @@ def cmd_info(args: argparse.Namespace) -> int:
     groups = [{"name": name, "receivers": int((rx.group == g).sum()),
                "material": rx.material_name(int(np.flatnonzero(rx.group == g)[0]))}
               for g, name in enumerate(rx.group_names)]
-    s.update({"description": scene.description, "emitters": emitters, "receiver_groups": groups})
+    env = scene.environment
+    environment = None if env is None else {
+        "kind": env.kind, "resolution": list(env.resolution), "power": env.power,
+        "brightest_1_percent_share": env.brightest_share()}
+    s.update({"description": scene.description, "emitters": emitters, "receiver_groups": groups,
+              "environment": environment})
     lines = [_SUMMARY_HEAD, _summary_line(s)]
     if scene.description:
         lines.insert(0, scene.description)
@@ -150,6 +155,10 @@ def cmd_info(args: argparse.Namespace) -> int:
     lines.append(f"{'emitter mesh':<28} {'triangles':>9} {'radiance':>10} {'area':>10} {'power':>10}")
     for e in emitters:
         lines.append(f"{e['mesh']:<28} {e['triangles']:>9} {e['radiance']:>10.4g} {e['area']:>10.4g} {e['power']:>10.4g}")
+    if env is not None:
+        width, height = env.resolution
+        lines.append(f"environment ({env.kind}): {width} × {height} texels, ∫ L dω = {env.power:.6g} over the sphere, "
+                     f"{100 * env.brightest_share():.3g}% of it in its brightest 1% of texels")
     lines.append("")
     lines.append("receiver groups: " + ", ".join(f"{g['name']} ({g['receivers']}, {g['material']})" for g in groups))
     s["notes"] = list(scene.notes)
