@@ -155,6 +155,10 @@ MUTANTS: tuple[Mutant, ...] = (
            "half a texel to the east", K + "environment.py", "environment_uv",
            "u = wp.atan2(v[0], -v[2]) * INV_2PI - 0.5 / (columns - 1.0)", "u = wp.atan2(v[0], -v[2]) * INV_2PI",
            ("tests/test_environment.py",)),
+    Mutant("delta-light-without-shadows", "a delta light's term skips its shadow ray: the box never hides the "
+           "bulb or the sun", K + "integrand.py", "delta_term",
+           "if length > 0.0 and any_hit_between(", "if length < 0.0 and any_hit_between(",
+           ("tests/test_delta_lights.py",)),
     # ------------------------------------------------------------------ light samples, shadow rays, the BVH
     Mutant("fast-light-pdf-without-r2", "a light sample on a planar emitter set reports its pdf without t²",
            K + "techniques.py", "sample_light_point", "* t * t / cos_y", "/ cos_y", ("tests/test_light_paths.py",)),

@@ -35,14 +35,14 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from ..errors import WarpisError
 from ..kernels.engine import as_scene, run_trials, select_receivers
 from ..kernels.estimators import parse_estimator
-from ..kernels.integrand import MATERIALS
+from ..kernels.integrand import MATERIALS, delta_terms
 from ..kernels.techniques import TECHNIQUES
 from ..limits import count as check_count
 from ..limits import seed as check_seed
@@ -93,6 +93,7 @@ class Reference:
     estimator: str = ""  # the quadrature's estimator; "" for the closed form
     rel_error: float | None = None  # the target asked for; None in fixed mode
     target_met: bool | None = None  # stderr within the target; None in fixed mode
+    delta: float = 0.0  # the delta lights' exact term, included in value (0 without delta lights)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -212,9 +213,10 @@ def reference(
     values, diffuse = _lambert(scene, idx)
     exact = _unblocked(scene, idx, diffuse, progress, stage) if closed_form else np.zeros(len(idx), bool)
     out: dict[int, Reference] = {}
+    delta = delta_terms(scene)
     for i, r in enumerate(idx):
-        if exact[i]:
-            out[int(r)] = Reference(int(r), float(values[i]), 0.0, "closed-form", 0, "", target,
+        if exact[i]:  # the closed form is the area lights' part; the quadrature's estimates carry delta already
+            out[int(r)] = Reference(int(r), float(values[i] + delta[r]), 0.0, "closed-form", 0, "", target,
                                     None if target is None else True)
     todo = [int(r) for r in idx if int(r) not in out]
     floor = {int(r): FLOOR * abs(float(values[i])) for i, r in enumerate(idx)}
@@ -226,7 +228,7 @@ def reference(
     elif todo:
         out.update(targeted_quadrature(scene, todo, target, budget, replicas, seed, floor, tick))
         _warn_missed([out[r] for r in todo], budget, replicas)
-    return [out[int(r)] for r in idx]
+    return [replace(out[int(r)], delta=float(delta[r])) for r in idx]
 
 
 def _lambert(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

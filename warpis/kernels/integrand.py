@@ -45,7 +45,7 @@ changes F by a second-order amount (docs/theory.md, "The integrand at a receiver
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import warp as wp
@@ -63,7 +63,7 @@ if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes import Scene
     from ..scenes.description import Receivers
 
-__all__ = ["MATERIALS", "ShadingPoint", "brdf", "evaluate_integrand", "integrand", "shading_point"]
+__all__ = ["MATERIALS", "ShadingPoint", "brdf", "delta_terms", "evaluate_integrand", "integrand", "shading_point"]
 
 
 def _unit_rho(rx: Receivers, rows: np.ndarray) -> np.ndarray:
@@ -266,6 +266,66 @@ def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int3
 def integrand(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
     """f(ω) = Le(ω) · ρ(ω) · max(0, n·ω) at the shading point."""
     return integrand_via(scene, sp, w, -1, 0.0)
+
+
+@wp.func
+def delta_term(scene: SceneData, sp: ShadingPoint, w: wp.vec3, t: float, e: float) -> float:
+    """One delta light's term E · ρ(ω) · max(0, n·ω) · V at the shading point: the light is
+    at distance t along ω (t ≥ FAR: a directional light, the ray must leave the scene)
+    and casts irradiance E on a surface facing it (scenes/delta.py).  The shadow ray
+    follows f's rules: it leaves the receiver's slab and ignores its plane; a point
+    light lies on no surface, so its end keeps only the slab of its own magnitude."""
+    cos_n = wp.dot(sp.n, w)
+    if cos_n <= 0.0 or e <= 0.0:
+        return 0.0
+    rho = brdf(scene, sp, w)
+    if rho == 0.0:
+        return 0.0
+    lead = sp.slab / wp.max(wp.abs(wp.dot(sp.ng, w)), 1.0e-12)
+    length = FAR
+    if t < FAR:
+        y = sp.p + t * w
+        length = t - lead - SELF_HIT * wp.max(wp.max(wp.abs(y[0]), wp.abs(y[1])), wp.abs(y[2]))
+    if length > 0.0 and any_hit_between(scene.bvh, scene.mesh, sp.p, sp.ng, sp.p, sp.ng, sp.p + lead * w, w, length):
+        return 0.0
+    return e * rho * cos_n
+
+
+@wp.kernel(enable_backward=False)
+def _delta_kernel(scene: SceneData, recv: ReceiverData, dirs: wp.array2d(dtype=wp.vec3),
+                  dist: wp.array2d(dtype=wp.float32), irr: wp.array2d(dtype=wp.float32),
+                  out: wp.array(dtype=wp.float64)):
+    r = wp.tid()
+    sp = shading_point(scene, recv, r)
+    total = wp.float64(0.0)
+    for k in range(dirs.shape[1]):
+        total += wp.float64(delta_term(scene, sp, wp.normalize(dirs[r, k]), dist[r, k], irr[r, k]))
+    out[r] = total
+
+
+def delta_terms(scene: Scene) -> np.ndarray:
+    """(R,) the exact term of the scene's delta lights at each receiver, Σ_l E_l ρ cos V
+    (zeros without delta lights); computed once per upload, read-only."""
+    up = upload(scene)
+    return up.cached("delta_terms", lambda: _delta_terms(scene, up))
+
+
+def _delta_terms(scene: Scene, up: Any) -> np.ndarray:
+    delta = scene.delta_lights
+    count = len(scene.receivers)
+    if delta is None or len(delta) == 0:
+        out = np.zeros(count)
+    else:
+        dev = up.device
+        dist = np.where(np.isinf(delta.distances), 2.0 * float(FAR), delta.distances)
+        dirs = wp.array(delta.directions.astype(np.float32), dtype=wp.vec3, device=dev)
+        d = wp.array(dist.astype(np.float32), dtype=wp.float32, device=dev)
+        e = wp.array(delta.irradiance.astype(np.float32), dtype=wp.float32, device=dev)
+        res = wp.zeros(count, dtype=wp.float64, device=dev)
+        wp.launch(_delta_kernel, dim=count, inputs=[up.data, up.receiver_data, dirs, d, e, res], device=dev)
+        out = res.numpy()
+    out.flags.writeable = False
+    return out
 
 
 @wp.kernel(enable_backward=False)

@@ -43,6 +43,7 @@ from ..errors import fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
 from .camera import SURFACE_FIELDS, Camera, camera_receiver_fields, cast_camera, image_side
+from .delta import DeltaLights
 from .environment import Environment
 from .normals import interpolate_normals
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
@@ -90,8 +91,10 @@ SUPPORTED_SHAPES = "triangle meshes (obj, ply, serialized, cube, ...), rectangle
 SUPPORTED_BSDFS = ("diffuse, roughconductor and roughplastic with uniform parameters, alone or inside twosided "
                    "(the same BSDF on both sides)")
 SUPPORTED_EMITTERS = ("area emitters (an <emitter type=\"area\"> inside a <shape>) with uniform radiance, an envmap "
-                      "(a rotation as its to_world) and a constant emitter of uniform radiance")
+                      "(a rotation as its to_world), a constant emitter of uniform radiance, and point, spot and "
+                      "directional lights")
 _ENVIRONMENTS = {"EnvironmentMapEmitter", "ConstantBackgroundEmitter"}
+_DELTA = {"PointLight": "point", "SpotLight": "spot", "DirectionalEmitter": "directional"}
 
 _SHAPE_PLUGINS = {"OBJMesh": "obj", "PLYMesh": "ply", "SerializedMesh": "serialized", "Cube": "cube",
                   "Rectangle": "rectangle", "Sphere": "sphere", "Disk": "disk", "Cylinder": "cylinder",
@@ -177,7 +180,8 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
     with _Mitsuba(file) as session:
         scene = session.load()
         environment = _environment(session.mi, scene, file, weights)
-        shapes = _shapes(session, scene, file, weights, lit=environment is not None)
+        delta_emitters = [e for e in scene.emitters() if e.class_name() in _DELTA]
+        shapes = _shapes(session, scene, file, weights, lit=environment is not None or bool(delta_emitters))
         sensor = _sensor(session.mi, scene)
         lens = _camera(session.mi, scene, file, width, height) if camera else None
         notes = [f"colour channel {channel}: {_CHANNEL_WORDS[channel]}"]
@@ -198,6 +202,11 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
         notes += s.notes
     if environment is not None:
         notes += environment.notes
+    delta = None
+    if delta_emitters:
+        with session:
+            delta = _delta_lights(session.mi, delta_emitters, rx.positions, file, weights)
+        notes += _delta_notes(delta)
     notes += receiver_notes
     name = side["name"] or (file.parent.name if file.name == "scene.xml" else file.stem)
     hint = (f"give some <shape> an <emitter type=\"area\">, or the scene an envmap or constant emitter, with a "
@@ -205,7 +214,7 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
     return _assemble(file, lambda m: f"{file}: shape {label[m]!r}", hint, name=name, vertices=vertices,
                      triangles=triangles, emission=emission, receivers=rx, triangle_mesh=owner,
                      mesh_names=[s.label for s in shapes], description=side["description"], device=str(device),
-                     path=file, notes=tuple(notes), environment=environment)
+                     path=file, notes=tuple(notes), environment=environment, delta_lights=delta)
 
 
 # ----------------------------------------------------------------------------- Mitsuba
@@ -558,7 +567,7 @@ def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray, lit:
     mi = session.mi
     for emitter in scene.emitters():
         cls = emitter.class_name()
-        if cls != "AreaLight" and cls not in _ENVIRONMENTS:
+        if cls != "AreaLight" and cls not in _ENVIRONMENTS and cls not in _DELTA:
             name = f"{emitter.id()!r} ({_EMITTER_PLUGINS.get(cls, cls)})" if emitter.id() else \
                 repr(_EMITTER_PLUGINS.get(cls, cls))
             raise fail(file, f"emitter {name}: warpis supports {SUPPORTED_EMITTERS}")
@@ -630,6 +639,46 @@ def _environment(mi: Any, scene: Any, file: Path, weights: np.ndarray) -> Enviro
     note = (f"{text}: {width} × {height} texels, ∫ L dω = {env.power:.6g} over the sphere, its brightest 1% of "
             f"texels carry {100 * env.brightest_share():.3g}% of it")
     return Environment(texels=texels, rotation=rotation, kind=plugin, label=where, notes=(note,))
+
+
+def _delta_lights(mi: Any, emitters: list[Any], points: np.ndarray, file: Path, weights: np.ndarray) -> DeltaLights:
+    """What each point, spot or directional light sends to each receiver, as Mitsuba's own
+    ``sample_direction`` says from the receiver's position (intensity, falloff and cone
+    included): its direction and distance, and the irradiance on a surface facing it."""
+    labels, kinds = [], []
+    count = len(points)
+    directions = np.zeros((count, len(emitters), 3))
+    distances = np.zeros((count, len(emitters)))
+    irradiance = np.zeros((count, len(emitters)))
+    for k, emitter in enumerate(emitters):
+        kind = _DELTA[emitter.class_name()]
+        label = emitter.id() or f"{kind} #{k + 1}"
+        where = f"{file}: emitter {label!r} ({kind})"
+        # A spot's texture, like its falloff, is one value towards each receiver: Mitsuba's
+        # sample_direction evaluates it there, so textured spots are exact too.
+        it = mi.Interaction3f()
+        for r, p in enumerate(points.tolist()):
+            it.p = mi.Point3f(*p)
+            ds, spec = emitter.sample_direction(it, mi.Point2f(0.5, 0.5), False)
+            directions[r, k] = np.array(ds.d, dtype=np.float64)
+            distances[r, k] = math.inf if kind == "directional" else float(ds.dist)
+            irradiance[r, k] = float(weights @ _rgb(spec))
+        if np.any(irradiance[:, k] < 0) or not np.all(np.isfinite(irradiance[:, k])):
+            raise fail(where, f"{kind}: its intensity must be finite and non-negative in every channel")
+        labels.append(label)
+        kinds.append(kind)
+    directions /= np.maximum(np.linalg.norm(directions, axis=-1, keepdims=True), 1e-300)
+    return DeltaLights(labels=tuple(labels), kinds=tuple(kinds), directions=directions, distances=distances,
+                       irradiance=irradiance)
+
+
+def _delta_notes(delta: DeltaLights) -> list[str]:
+    out = []
+    for k, (label, kind) in enumerate(zip(delta.labels, delta.kinds)):
+        e = delta.irradiance[:, k]
+        out.append(f"{label}: {kind} light, irradiance {e.min():.6g} to {e.max():.6g} at the receivers (facing it): "
+                   f"an exact term, with no variance, in every estimate and reference")
+    return out
 
 
 def _envmap_texels(params: dict[str, Any], fields: dict[str, str], where: str) -> np.ndarray:
