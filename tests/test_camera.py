@@ -227,7 +227,8 @@ def test_masks_follow_what_each_pixel_sees(scene):
     hit_lamp_back = np.isin(exp["tri"], np.flatnonzero(scene.triangle_mesh == lamp_back)) & clear
     assert hit_lamp_back.any() and (layout.seen.ravel()[hit_lamp_back] == PIXEL_EMITTER).all()
     counts = layout.masked_counts()
-    assert counts == {"nothing": int((layout.seen == 1).sum()), "emitter": int((layout.seen == 2).sum()), "back": 0}
+    assert counts == {"nothing": int((layout.seen == 1).sum()), "emitter": int((layout.seen == 2).sum()), "back": 0,
+                      "unshaded": 0}
     assert counts["nothing"] > 0 and counts["emitter"] > 0
 
 
@@ -313,7 +314,7 @@ def test_to_image_places_each_receiver_at_its_pixel():
     assert np.isnan(img[seen != 0]).all()
     winners = layout.to_image(np.array([0, 1, 1, 0, 1, 0], np.int16), fill=-1)
     assert (winners[seen != 0] == -1).all() and winners[0, 1] == 0 and winners[0, 2] == 1
-    assert layout.masked_counts() == {"nothing": 4, "emitter": 1, "back": 1}
+    assert layout.masked_counts() == {"nothing": 4, "emitter": 1, "back": 1, "unshaded": 0}
 
 
 # --------------------------------------------------------------------------- materials

@@ -141,7 +141,7 @@ def test_cli_writes_the_page_and_the_numbers(cli_run):
     mask = cli_run["arrays"]["mask"]
     assert meta["receivers"] == int((mask == 0).sum()) > 0
     assert meta["masked"] == {"nothing": int((mask == 1).sum()), "emitter": int((mask == 2).sum()),
-                              "back": int((mask == 3).sum())}
+                              "back": int((mask == 3).sum()), "unshaded": int((mask == 4).sum())}
     assert [row["estimator"] for row in meta["summary"]] == meta["estimators"]
     assert all(row["predicted_pixels"] == meta["receivers"] for row in meta["summary"])
     # The baseline beats itself nowhere and is at 1 across its pixels; the page shows the same columns.

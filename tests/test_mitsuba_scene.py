@@ -724,6 +724,24 @@ def test_bad_receivers_file(scene_path, receivers, parts):
     ('<emitter type="constant"/>', ["emitter 'constant'", "only area emitters"]),
     ('<emitter type="spot" id="spot"/>', ["emitter 'spot' (spot)"]),
     ('<emitter type="directional"><vector name="direction" x="0" y="0" z="-1"/></emitter>', ["'directional'"]),
+    ('<shape type="shapegroup" id="group"><shape type="sphere"/></shape>'
+     '<shape type="instance" id="copy"><ref id="group"/></shape>', ["shape 'copy'", "instances are not supported"]),
+    ('<shape type="sphere" id="egg"><transform name="to_world"><scale x="1" y="2" z="1"/></transform></shape>',
+     ["shape 'egg'", "sphere: its to_world scales unevenly"]),
+    ('<shape type="cylinder" id="oval"><transform name="to_world"><scale x="1" y="2" z="1"/></transform></shape>',
+     ["shape 'oval'", "cylinder: its to_world scales its cross-section unevenly"]),
+    ('<shape type="rectangle" id="tex-light">'
+     '<emitter type="area"><texture type="checkerboard" name="radiance"/></emitter></shape>',
+     ["shape 'tex-light'", "area emitter: its radiance is a 'checkerboard' texture"]),
+])
+def test_unsupported_elements(scene_path, extra, parts):
+    path = scene_path(extra)
+    with pytest.raises(WarpisError) as excinfo:
+        load_mitsuba(path)
+    one_line(excinfo, path, *parts)
+
+
+@pytest.mark.parametrize("extra, parts", [
     ('<shape type="rectangle" id="glass"><bsdf type="dielectric"/></shape>',
      ["shape 'glass'", "BSDF 'dielectric' is not supported", "roughconductor"]),
     ('<shape type="rectangle" id="chrome"><bsdf type="conductor"/></shape>', ["shape 'chrome'", "'conductor'"]),
@@ -743,21 +761,18 @@ def test_bad_receivers_file(scene_path, receivers, parts):
      '</shape>', ["shape 'nl'", "nonlinear=true"]),
     ('<shape type="rectangle" id="two"><bsdf type="twosided"><bsdf type="diffuse"/><bsdf type="roughconductor"/>'
      '</bsdf></shape>', ["shape 'two'", "different BSDF on each side"]),
-    ('<shape type="shapegroup" id="group"><shape type="sphere"/></shape>'
-     '<shape type="instance" id="copy"><ref id="group"/></shape>', ["shape 'copy'", "instances are not supported"]),
-    ('<shape type="sphere" id="egg"><transform name="to_world"><scale x="1" y="2" z="1"/></transform></shape>',
-     ["shape 'egg'", "sphere: its to_world scales unevenly"]),
-    ('<shape type="cylinder" id="oval"><transform name="to_world"><scale x="1" y="2" z="1"/></transform></shape>',
-     ["shape 'oval'", "cylinder: its to_world scales its cross-section unevenly"]),
-    ('<shape type="rectangle" id="tex-light">'
-     '<emitter type="area"><texture type="checkerboard" name="radiance"/></emitter></shape>',
-     ["shape 'tex-light'", "area emitter: its radiance is a 'checkerboard' texture"]),
 ])
-def test_unsupported_elements(scene_path, extra, parts):
-    path = scene_path(extra)
+def test_unsupported_bsdfs_under_a_receiver(scene_path, extra, parts):
+    """A BSDF warpis cannot shade is an error once a receiver lies on its shape (at z = 1,
+    above the floor); without one the shape only occludes (tests/test_occluders.py)."""
+    head, sep, rest = extra.partition(">")
+    lifted = head + sep + '<transform name="to_world"><scale value="0.3"/><translate z="1"/></transform>' + rest
+    on_it = "[[receivers]]\nname = 'up'\npoints = [[0.1, 0.1, 1]]\n"
+    path = scene_path(lifted, receivers=on_it)
     with pytest.raises(WarpisError) as excinfo:
         load_mitsuba(path)
-    one_line(excinfo, path, *parts)
+    one_line(excinfo, path, *parts, "point 0 (0.1, 0.1, 1) of [receivers] 'up' in scene.receivers.toml lies on it")
+    assert len(load_mitsuba(scene_path(lifted)).receivers) == 1
 
 
 def test_meaning_changing_warnings_are_errors_and_print_nothing(scene_path, capfd):
@@ -773,8 +788,10 @@ def test_meaning_changing_warnings_are_errors_and_print_nothing(scene_path, capf
 def test_bitmap_texture(scene_path, tmp_path):
     mi.set_variant("scalar_rgb")
     mi.Bitmap(np.full((2, 2, 3), 0.5, np.float32)).write(str(tmp_path / "tex.exr"))
-    path = scene_path('<shape type="rectangle" id="tex"><bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
-                      '<string name="filename" value="tex.exr"/></texture></bsdf></shape>')
+    path = scene_path('<shape type="rectangle" id="tex"><transform name="to_world"><scale value="0.3"/>'
+                      '<translate z="1"/></transform><bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+                      '<string name="filename" value="tex.exr"/></texture></bsdf></shape>',
+                      receivers="[[receivers]]\npoints = [[0.1, 0.1, 1]]\n")
     with pytest.raises(WarpisError) as excinfo:
         load_mitsuba(path)
     one_line(excinfo, path, "shape 'tex'", "reflectance is a 'bitmap' texture")

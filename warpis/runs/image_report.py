@@ -19,7 +19,8 @@ settings, how predictions were bounded, the masked pixel counts and a link to th
 (``image.npz``).  :func:`write_exr` optionally writes every array to ``image.exr``.
 
 Colours shared by every map: light grey is a pixel that is not a receiver (it sees
-nothing, an emitter or the back of a one-sided surface: one grey for all three), mid grey
+nothing, an emitter, the back of a one-sided surface, or a surface whose BSDF warpis cannot
+shade: one grey for all four), mid grey
 a receiver without a value (not predicted, or undefined), black an exact zero on a log
 scale.  Every file is written atomically (:func:`warpis.runs.outdir.replacing`).
 """
@@ -52,7 +53,7 @@ from PIL import Image  # noqa: E402  (a dependency of matplotlib)
 from . import outdir  # noqa: E402
 
 # Special colours (RGB in [0, 1]); none of them occurs in the colour maps used below.
-MASKED_RGB = (0.85, 0.85, 0.85)  # not a receiver: sees nothing, an emitter, or a back face
+MASKED_RGB = (0.85, 0.85, 0.85)  # not a receiver: sees nothing, an emitter, a back face, or a surface not shaded
 MISSING_RGB = (0.55, 0.55, 0.55)  # a receiver with no value: not predicted, or undefined
 ZERO_RGB = (0.0, 0.0, 0.0)  # exactly zero on a log scale (an umbra has zero variance)
 MASKED_NAME, MISSING_NAME, ZERO_NAME = "light grey", "mid grey", "black"
@@ -72,7 +73,8 @@ MAX_PANEL_HEIGHT_IN = 4.0
 TITLE_WIDTH = 38  # characters per title line at the title font size
 
 MASK_KINDS = (("nothing", 1, "sees nothing"), ("emitter", 2, "sees an emitter"),
-              ("back", 3, "sees the back of a one-sided surface"))
+              ("back", 3, "sees the back of a one-sided surface"),
+              ("unshaded", 4, "sees a surface whose BSDF warpis cannot shade"))
 
 # One line per picture for the page, by file stem.
 DESCRIPTIONS = {
@@ -239,8 +241,8 @@ def _colour_bar(fig, scale: Scale, axes, extend: str, special: str) -> None:
         bar.set_ticks(ticks, labels=[f"{t:.3g}" for t in ticks])
         bar.ax.minorticks_off()
     bar.ax.tick_params(which="both", labelsize=7)
-    fig.supxlabel(_tex_safe(f"{MASKED_NAME}: not a receiver (sees nothing, an emitter or a back face); {special}"),
-                  fontsize=7)
+    fig.supxlabel(_tex_safe(f"{MASKED_NAME}: not a receiver (sees nothing, an emitter, a back face or a surface "
+                            f"warpis cannot shade); {special}"), fontsize=7)
 
 
 def _figure(n_panels: int, shape: tuple[int, int], extra_width: float = 1.3):

@@ -5,8 +5,10 @@ surface it meets becomes a receiver there, with the triangle's geometric normal 
 towards the camera, the material of the mesh it belongs to, and the unit direction to
 the camera as its view.  A pixel is *masked* (no receiver, left out of every statistic)
 when it sees nothing, sees an emitter triangle (either side: warpis measures reflected
-direct light, not emission seen directly), or sees the back of a one-sided surface
-(Mitsuba returns 0 there).  :class:`ImageLayout` keeps which pixel each receiver is and
+direct light, not emission seen directly), sees the back of a one-sided surface
+(Mitsuba returns 0 there), or sees a surface whose BSDF warpis cannot shade (a Mitsuba
+shape that warpis keeps as an occluder only: it blocks light, but its reflection is not
+warpis's to compute).  :class:`ImageLayout` keeps which pixel each receiver is and
 why the others are masked, so that per-receiver numbers become images.
 
 Every scene source with a camera (a TOML scene's ``[receivers.camera]``, a Mitsuba
@@ -29,9 +31,10 @@ from ..kernels.camera import first_hits
 from .normals import interpolate_normals
 
 # What a pixel sees (ImageLayout.seen).
-PIXEL_RECEIVER, PIXEL_NOTHING, PIXEL_EMITTER, PIXEL_BACK = 0, 1, 2, 3
+PIXEL_RECEIVER, PIXEL_NOTHING, PIXEL_EMITTER, PIXEL_BACK, PIXEL_UNSHADED = 0, 1, 2, 3, 4
 MASK_WORDS = {PIXEL_NOTHING: "sees nothing", PIXEL_EMITTER: "sees an emitter",
-              PIXEL_BACK: "sees the back of a one-sided surface"}
+              PIXEL_BACK: "sees the back of a one-sided surface",
+              PIXEL_UNSHADED: "sees a surface whose BSDF warpis cannot shade"}
 # Largest image side: far beyond any variance study, small enough that W × H rays and
 # their receivers fit the kernels' int32 indices.
 MAX_SIDE = 1 << 14
@@ -154,12 +157,13 @@ class ImageLayout:
         masked = self.masked_counts()
         return (f"{len(self.pixel)} of {self.shape[0] * self.shape[1]} pixels are receivers; masked: "
                 f"{masked['nothing']} see nothing, {masked['emitter']} an emitter, {masked['back']} the back of a "
-                f"one-sided surface")
+                f"one-sided surface"
+                + (f", {masked['unshaded']} a surface whose BSDF warpis cannot shade" if masked["unshaded"] else ""))
 
     def masked_counts(self) -> dict[str, int]:
         """How many pixels are masked, by reason."""
         return {"nothing": int((self.seen == PIXEL_NOTHING).sum()), "emitter": int((self.seen == PIXEL_EMITTER).sum()),
-                "back": int((self.seen == PIXEL_BACK).sum())}
+                "back": int((self.seen == PIXEL_BACK).sum()), "unshaded": int((self.seen == PIXEL_UNSHADED).sum())}
 
 
 @dataclass(frozen=True)
@@ -177,12 +181,18 @@ class CameraHits:
 
 def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
                 owner: np.ndarray, two_sided: Sequence[bool], device: str,
-                corner_normals: np.ndarray | None = None) -> CameraHits:
+                corner_normals: np.ndarray | None = None, unshaded: Sequence[str | None] | None = None
+                ) -> CameraHits:
     """Cast the camera's primary rays; the receivers they find and what each pixel sees.
 
     ``corner_normals`` (T, 3, 3), where given, are the vertex normals at each triangle's
     corners (its own normal, three times, for a flat one): the receivers then shade with
-    their interpolation, and a one-sided surface's back is judged by it, as in Mitsuba."""
+    their interpolation, and a one-sided surface's back is judged by it, as in Mitsuba.
+
+    ``unshaded``, where given, holds per mesh None, or words naming a mesh whose BSDF
+    warpis cannot shade (an occluder only): its pixels, either side, are masked as
+    ``PIXEL_UNSHADED`` (an emitter's stay ``PIXEL_EMITTER``), with a note counting them
+    by mesh."""
     directions = camera.directions()
     face = first_hits(vertices, triangles, camera.position, directions, device)
     seen = np.full(len(face), PIXEL_NOTHING, np.int8)
@@ -210,10 +220,18 @@ def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emi
     with np.errstate(invalid="ignore"):
         ds = np.einsum("ij,ij->i", d, shade)
     emitter = emission[tri] > 0
-    back = (ds > 0) & ~np.asarray(two_sided, bool)[owner[tri]]
+    cannot = np.zeros(len(tri), bool)
+    if unshaded is not None:
+        cannot = np.array([u is not None for u in unshaded], bool)[owner[tri]] & solid & ~emitter
+        if cannot.any():
+            meshes, counts = np.unique(owner[tri[cannot]], return_counts=True)
+            notes.append(f"{int(cannot.sum())} pixel(s) see a surface whose BSDF warpis cannot shade: masked ("
+                         + ", ".join(f"{unshaded[m]}: {c}" for m, c in zip(meshes, counts)) + ")")
+    back = (ds > 0) & ~np.asarray(two_sided, bool)[owner[tri]] & ~cannot
     seen[hit[solid & emitter]] = PIXEL_EMITTER
+    seen[hit[cannot]] = PIXEL_UNSHADED
     seen[hit[solid & ~emitter & back]] = PIXEL_BACK
-    keep = solid & ~emitter & ~back
+    keep = solid & ~emitter & ~back & ~cannot
     seen[hit[keep]] = PIXEL_RECEIVER
     p = camera.position + t[keep, None] * d[keep]
     towards = (ds[keep] < 0)[:, None]

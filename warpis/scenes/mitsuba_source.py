@@ -18,7 +18,10 @@ warpis's arrays and hands them to the same gate as every other source (``_assemb
   :mod:`warpis.kernels.shading`);
 * BSDFs: ``diffuse`` → lambert, ``roughconductor`` → roughconductor, ``roughplastic`` →
   roughplastic, each alone or inside ``twosided``; a receiver takes the BSDF of the
-  shape it lies on;
+  shape it lies on.  A shape with any other BSDF is an occluder only: it blocks shadow
+  rays, as every shape does in Mitsuba's ``direct`` integrator (its ``ray_test`` reads no
+  BSDF: glass, a ``null`` BSDF and a ``mask`` of any opacity block alike), and a receiver
+  on it is an error, raised only then; a camera pixel that sees it is masked;
 * receivers: a TOML file beside the XML (``<stem>.receivers.toml``; README.md,
   "Mitsuba scenes") lists points on the scene's surfaces, or grids over planar shapes,
   and where the viewer is (default: the XML's first sensor).
@@ -39,7 +42,7 @@ import numpy as np
 import trimesh
 
 from ..analysis.closed_form import triangle_irradiance
-from ..errors import fail
+from ..errors import WarpisError, fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
 from .camera import SURFACE_FIELDS, Camera, camera_receiver_fields, cast_camera, image_side
@@ -89,7 +92,8 @@ NONE_ETA = 1e-6
 
 SUPPORTED_SHAPES = "triangle meshes (obj, ply, serialized, cube, ...), rectangle, sphere, disk and cylinder"
 SUPPORTED_BSDFS = ("diffuse, roughconductor and roughplastic with uniform parameters, alone or inside twosided "
-                   "(the same BSDF on both sides)")
+                   "(the same BSDF on both sides), on a shape that holds receivers (a shape without receivers "
+                   "may have any BSDF: it only blocks light, as in Mitsuba's direct integrator)")
 SUPPORTED_EMITTERS = ("area emitters (an <emitter type=\"area\"> inside a <shape>) with uniform radiance, an envmap "
                       "(a rotation as its to_world), a constant emitter of uniform radiance, and point, spot and "
                       "directional lights")
@@ -385,6 +389,10 @@ class _Material:
     specular_weight: float = MICROFACET_DEFAULTS["specular_weight"]
     twosided: bool = False
     grey: bool = True  # the same in every colour channel
+    # A BSDF warpis cannot shade: the one-line error a receiver on it raises, and the
+    # BSDF's name; "" for one it shades.  Such a shape is an occluder only.
+    problem: str = ""
+    unshaded: str = ""
 
     def same(self, other: _Material) -> bool:
         return (self.kind == other.kind and self.albedo == other.albedo and self.alpha == other.alpha
@@ -519,7 +527,24 @@ def _one_bsdf(cls: str, fields: dict[str, str], params: dict[str, Any], where: s
 
 
 def _material(mi: Any, bsdf: Any, where: str, weights: np.ndarray, notes: list[str]) -> _Material:
-    """A shape's Mitsuba BSDF → its warpis material."""
+    """A shape's Mitsuba BSDF → its warpis material; one warpis cannot shade → an
+    occluder's placeholder holding the error (``problem``), which a receiver on the
+    shape raises (a shape only blocks light in Mitsuba's ``direct``, whatever its BSDF)."""
+    kept: list[str] = []
+    try:
+        material = _shaded_material(mi, bsdf, where, weights, kept)
+    except WarpisError as exc:
+        cls = bsdf.class_name()
+        name = _BSDF_PLUGINS.get(cls, cls)
+        return _Material("lambert", f"BSDF {name!r}, which warpis cannot shade: an occluder only (it blocks light, "
+                                    f"as any shape does in Mitsuba's direct integrator)", problem=str(exc),
+                         unshaded=name)
+    notes += kept
+    return material
+
+
+def _shaded_material(mi: Any, bsdf: Any, where: str, weights: np.ndarray, notes: list[str]) -> _Material:
+    """A shape's Mitsuba BSDF → its warpis material, or a one-line error."""
     params = _params(mi, bsdf)
     _, fields = _fields(str(bsdf))
     cls = bsdf.class_name()
@@ -1104,17 +1129,20 @@ def _camera_receivers(camera: Camera, shapes: list[_Shape], vertices: np.ndarray
                       ) -> tuple[Receivers, list[str], np.ndarray]:
     """The camera's pixels as receivers, each with the material of the shape it sees and
     Mitsuba's shading normal there."""
+    unshaded = [f"shape {s.label!r} ({s.material.unshaded})" if s.material.problem else None for s in shapes]
     hits = cast_camera(camera, vertices, triangles, emission, owner, [s.material.twosided for s in shapes], device,
-                       _corner_normals(shapes, vertices, triangles))
+                       _corner_normals(shapes, vertices, triangles), unshaded)
     hits = _analytic_pixels(hits, shapes)
     _receiver_count(len(hits.positions), f"the camera ({camera.width} × {camera.height})", file)
     for k in np.unique(hits.mesh):
         shapes[k].material.check(f"{file}: shape {shapes[k].label!r} (seen by the camera)")
-    surfaces = [{"material": MATERIALS[s.material.kind].code, "exponent": 1.0,
+    surfaces = [None if s.material.problem else
+                {"material": MATERIALS[s.material.kind].code, "exponent": 1.0,
                  **{name: getattr(s.material, name) for name in SURFACE_FIELDS if name not in ("material", "exponent")}}
                 for s in shapes]
-    # Every shape has a material (an emitter's is its shell's), so no message is needed.
-    rx = Receivers(**camera_receiver_fields(hits, surfaces, lambda m, c: "", file))
+    # Every shape has a material (an emitter's is its shell's); one warpis cannot shade
+    # has its pixels masked, so it is never a receiver's.
+    rx = Receivers(**camera_receiver_fields(hits, surfaces, lambda m, c: shapes[m].material.problem, file))
     notes = [camera.describe(), hits.layout.describe(), *hits.notes]
     masked = hits.layout.masked_counts()
     if masked["back"]:
@@ -1504,6 +1532,7 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
             i = int(np.argmax(on_emitter))
             raise fail(sidecar, f"{where} point {i} {_triple3(points[i])} lies on shape {shapes[shape_of[i]].label!r}, "
                                 f"an emitter: receivers must lie on surfaces that do not emit")
+        _check_shaded(shapes, shape_of, points, f"{where} in {sidecar.name}")
         one_sided = ~np.array([s.material.twosided for s in shapes])[shape_of]
         if (one_sided & ~facing).any():
             i = int(np.argmax(one_sided & ~facing))
@@ -1560,6 +1589,14 @@ def _receivers(side: dict[str, Any], shapes: list[_Shape], vertices: np.ndarray,
         specular_weight=per_receiver("specular_weight"),
     )
     return rx, notes, np.unique(shape_of)
+
+
+def _check_shaded(shapes: list[_Shape], shape_of: np.ndarray, points: np.ndarray, where: str) -> None:
+    """A receiver on a shape whose BSDF warpis cannot shade raises that shape's error."""
+    for k in np.unique(shape_of):
+        if shapes[k].material.problem:
+            i = int(np.argmax(shape_of == k))
+            raise WarpisError(f"{shapes[k].material.problem}; point {i} {_triple3(points[i])} of {where} lies on it")
 
 
 def _shading_normals(where: str, shapes: list[_Shape], shape_of: np.ndarray, index: np.ndarray, points: np.ndarray,
