@@ -635,8 +635,6 @@ def _environment(mi: Any, scene: Any, file: Path, weights: np.ndarray) -> Enviro
     found = [e for e in scene.emitters() if e.class_name() in _ENVIRONMENTS]
     if not found:
         return None
-    if len(found) > 1:
-        raise fail(file, f"{len(found)} environment emitters: warpis supports one envmap or constant emitter")
     emitter = found[0]
     cls = emitter.class_name()
     plugin = _EMITTER_PLUGINS[cls]
@@ -688,6 +686,10 @@ def _delta_lights(mi: Any, emitters: list[Any], points: np.ndarray, file: Path, 
             directions[r, k] = np.array(ds.d, dtype=np.float64)
             distances[r, k] = math.inf if kind == "directional" else float(ds.dist)
             irradiance[r, k] = float(weights @ _rgb(spec))
+        if kind != "directional" and np.any(distances[:, k] <= 0):
+            r = int(np.flatnonzero(distances[:, k] <= 0)[0])
+            raise fail(where, f"{kind}: it sits at receiver {r} {_triple3(points[r])}, where its irradiance is "
+                              f"infinite: move the light off the surface")
         if np.any(irradiance[:, k] < 0) or not np.all(np.isfinite(irradiance[:, k])):
             raise fail(where, f"{kind}: its intensity must be finite and non-negative in every channel")
         labels.append(label)
