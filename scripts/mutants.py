@@ -142,6 +142,23 @@ MUTANTS: tuple[Mutant, ...] = (
            K + "techniques.py", "add_crossing", "out.pdf = out.pdf + radiance / float(table.total[sp.receiver])",
            "out.pdf = out.pdf + 1.0 / float(table.total[sp.receiver])",
            ("tests/test_light_pdf.py",)),
+    # ------------------------------------------------------------------ environment lights (environment.py)
+    Mutant("envmap-pdf-misses-jacobian", "the envmap pdf divides the cell's probability by ΔφΔθ, not by its solid "
+           "angle Δφ(cos θ_j − cos θ_j+1): the sin θ Jacobian is lost", K + "environment.py", "environment_pdf",
+           "return float(p / _cell_solid_angle(env, j))",
+           "return float(p / (wp.float64(TWO_PI) / wp.float64(columns - 1) * wp.float64(PI) / wp.float64(height - 1)))",
+           ("tests/test_pdf_integrals.py",)),
+    Mutant("envmap-pdf-of-the-next-row", "the envmap pdf takes the probability of the row below the direction's",
+           K + "environment.py", "environment_pdf", "p = (env.row_cdf[j + 1] - env.row_cdf[j])",
+           "p = (env.row_cdf[wp.min(j + 2, height - 1)] - env.row_cdf[j + 1])", ("tests/test_pdf_integrals.py",)),
+    Mutant("envmap-lookup-without-half-texel", "the lookup drops Mitsuba's half-texel shift: every texel is read "
+           "half a texel to the east", K + "environment.py", "environment_uv",
+           "u = wp.atan2(v[0], -v[2]) * INV_2PI - 0.5 / (columns - 1.0)", "u = wp.atan2(v[0], -v[2]) * INV_2PI",
+           ("tests/test_environment.py",)),
+    Mutant("delta-light-without-shadows", "a delta light's term skips its shadow ray: the box never hides the "
+           "bulb or the sun", K + "integrand.py", "delta_term",
+           "if length > 0.0 and any_hit_between(", "if length < 0.0 and any_hit_between(",
+           ("tests/test_delta_lights.py",)),
     # ------------------------------------------------------------------ light samples, shadow rays, the BVH
     Mutant("fast-light-pdf-without-r2", "a light sample on a planar emitter set reports its pdf without t²",
            K + "techniques.py", "sample_light_point", "* t * t / cos_y", "/ cos_y", ("tests/test_light_paths.py",)),

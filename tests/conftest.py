@@ -295,6 +295,21 @@ def dome_scene(folder: Path, radiance: float) -> warpis.Scene:
     return warpis.load_scene(folder / "scene.toml")
 
 
+def sky_environment(height: int = 12, width: int = 24, angle: float = 0.7) -> warpis.Environment:
+    """A small procedural sky for scenes written in tests: a gradient from the zenith to a
+    black lower hemisphere in some longitudes (cells of zero radiance), and a sun 20× the
+    sky over four texels; rotated by ``angle`` about a tilted axis (a general rotation)."""
+    theta = np.pi * np.arange(height) / (height - 1)
+    phi = 2 * np.pi * (np.arange(width) + 0.5) / width
+    sky = 0.5 + 1.5 * np.cos(theta / 2)[:, None] ** 2 * (1.0 + 0.3 * np.sin(phi)[None, :])
+    sky[theta > 0.6 * np.pi, : width // 3] = 0.0
+    sky[2:4, 5:7] *= 20.0
+    axis = np.array([0.3, 0.8, -0.5]) / np.linalg.norm([0.3, 0.8, -0.5])
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+    return warpis.Environment(texels=sky, rotation=rotation, label="sky")
+
+
 # --------------------------------------------------------------------------- point-set forms
 # ``values`` callables for the pair forms of warpis.analysis.point_sets on closed-form ψ.
 

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from conftest import BUNDLED
+from conftest import BUNDLED, concat_meshes, sky_environment
 
 import warpis
 from warpis.analysis.reference import reference
@@ -29,7 +29,7 @@ from warpis.kernels.engine import run_trials
 from warpis.kernels.estimators import COMBINERS, Estimator, parse_estimator
 from warpis.kernels.integrand import MATERIALS, evaluate_integrand
 from warpis.kernels.patterns import PATTERNS
-from warpis.kernels.techniques import TECHNIQUES, direction_pdf, sample_directions
+from warpis.kernels.techniques import TECHNIQUES, check_lights, direction_pdf, sample_directions
 from warpis.runs.verify import default_techniques
 
 TRIALS = 4000
@@ -68,7 +68,8 @@ RECEIVERS = {"veach-plates": [0, 3, 5, 10, 12, 15]}
 def scene_techniques(scene: warpis.Scene) -> tuple[str, ...]:
     """Every registered technique, the lobes only where the scene has their material."""
     present = {MATERIALS.by_code(c).bsdf_technique for c in np.unique(scene.receivers.material)}
-    return tuple(t for t in TECHNIQUES if t not in LOBES or t in present)
+    return tuple(t for t, e in TECHNIQUES.items() if (t not in LOBES or t in present)
+                 and (scene.environment is not None or not e.environment) and (scene.emitter_count or not e.light))
 
 
 def technique_sets(scene: warpis.Scene) -> list[tuple[str, ...]]:
@@ -96,7 +97,17 @@ def estimators_for(scene: warpis.Scene) -> list[Estimator]:
         out += [Estimator(pattern, c.name, (t,)) for c in unbiased if not c.several for t in techs]
         out += [Estimator(pattern, c.name, s) for c in unbiased if c.several
                 for s in (sets[:1] + sets[3:] if c.name in FEWER_SETS else sets)]
-    return out
+    return [est for est in out if _reaches_every_light(scene, est)]
+
+
+def _reaches_every_light(scene: warpis.Scene, est: Estimator) -> bool:
+    """Whether the estimator's techniques see all of the scene's light (check_lights: on a
+    scene with an environment and emitter triangles, light techniques alone do not)."""
+    try:
+        check_lights(scene, est.techniques)
+    except warpis.WarpisError:
+        return False
+    return True
 
 
 def receivers_for(scene_name: str, est: Estimator, count: int) -> list[int]:
@@ -109,7 +120,7 @@ class _References(dict):
     """Scene name → (scene, {receiver: (reference, stderr)}), computed on first use."""
 
     def __missing__(self, name: str):
-        scene = warpis.load_scene(name)
+        scene = sky_scene() if name == "sky" else warpis.load_scene(name)
         self[name] = (scene, {r.index: (r.value, r.stderr) for r in reference(scene)})
         return self[name]
 
@@ -119,7 +130,25 @@ def references() -> _References:
     return _References()
 
 
-@pytest.mark.parametrize("name", BUNDLED)
+def sky_scene() -> warpis.Scene:
+    """conftest's procedural sky over a floor with a box, and a small quad light: envmap
+    in every pattern and combiner, with and without the light techniques."""
+    floor = (np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]]),
+             np.array([[0, 1, 2], [0, 2, 3]]), 0.0)
+    box = (np.array([[0.3, -0.2, 0.0], [0.7, -0.2, 0.0], [0.7, 0.2, 0.0], [0.3, 0.2, 0.0], [0.3, -0.2, 0.5],
+                     [0.7, -0.2, 0.5], [0.7, 0.2, 0.5], [0.3, 0.2, 0.5]]),
+           np.array([[4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6],
+                     [3, 0, 4], [3, 4, 7]]), 0.0)
+    lamp = (np.array([[-0.6, -0.1, 1.0], [-0.4, -0.1, 1.0], [-0.4, 0.1, 1.0], [-0.6, 0.1, 1.0]]),
+            np.array([[0, 2, 1], [0, 3, 2]]), 20.0)
+    vertices, triangles, emission = concat_meshes([floor, box, lamp])
+    return warpis.Scene.from_arrays(vertices, triangles, emission, [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0],
+                                                                    [-0.5, 0.3, 0.0], [0.5, -0.5, 0.0],
+                                                                    [-1.0, -1.0, 0.0], [0.2, 0.9, 0.0]], [0, 0, 1], material="lambert",
+                                    albedo=0.6, environment=sky_environment(), name="sky")
+
+
+@pytest.mark.parametrize("name", BUNDLED + ("sky",))
 def test_every_estimator_is_unbiased(references, name):
     """Every pattern × combiner × technique set: mean within z* of the reference.
 

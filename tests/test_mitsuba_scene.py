@@ -719,11 +719,12 @@ def test_bad_receivers_file(scene_path, receivers, parts):
 
 
 @pytest.mark.parametrize("extra, parts", [
-    ('<emitter type="point" id="bulb"><point name="position" x="0" y="0" z="1"/></emitter>',
-     ["emitter 'bulb' (point)", "only area emitters"]),
-    ('<emitter type="constant"/>', ["emitter 'constant'", "only area emitters"]),
-    ('<emitter type="spot" id="spot"/>', ["emitter 'spot' (spot)"]),
-    ('<emitter type="directional"><vector name="direction" x="0" y="0" z="-1"/></emitter>', ["'directional'"]),
+    ('<emitter type="projector" id="beamer"/>', ["emitter 'beamer' (projector)", "area emitters"]),
+    ('<emitter type="sunsky"/>', ["emitter 'sunsky'", "envmap"]),
+    ('<emitter type="constant"/><emitter type="constant"/>',
+     ["Only one environment emitter"]),  # Mitsuba's own refusal, in one line
+    ('<emitter type="point" id="bulb"><point name="position" x="0" y="0" z="0"/></emitter>',
+     ["emitter 'bulb' (point)", "sits at receiver 0", "infinite"]),
     ('<shape type="shapegroup" id="group"><shape type="sphere"/></shape>'
      '<shape type="instance" id="copy"><ref id="group"/></shape>', ["shape 'copy'", "instances are not supported"]),
     ('<shape type="sphere" id="egg"><transform name="to_world"><scale x="1" y="2" z="1"/></transform></shape>',

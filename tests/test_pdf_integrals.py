@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import concat_meshes
+from conftest import concat_meshes, sky_environment
 from test_light_pdf import numpy_light_pdfs
 
 from warpis import Scene
@@ -93,7 +93,7 @@ def _scene() -> Scene:
     views = _unit([[-0.5, 0.3, 0.8], [0.2, 0.6, 0.77], [0.7, -0.1, 0.7], [-0.2, -0.7, 0.68], [0.1, 0.2, 0.97]])
     return Scene.from_arrays(vertices, triangles, emission, positions, normals,
                              material=MATERIALS["phong"].code, exponent=np.array(EXPONENTS), view=views,
-                             name="pdf-integrals")
+                             name="pdf-integrals", environment=sky_environment())
 
 
 @pytest.fixture(scope="module")
@@ -281,9 +281,32 @@ def _valid_fraction(scene: Scene, r: int, technique: str) -> float:
     return fraction
 
 
+def environment_rule(scene: Scene, n_gl: int = 4, n_phi: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Directions and weights for ∫ over the whole sphere, cell by cell of the scene's
+    environment (Gauss–Legendre in cos θ × midpoints in φ, in its frame): the envmap pdf
+    is constant on each cell, so the rule is exact to rounding."""
+    env = scene.environment
+    height, width = env.texels.shape
+    x, wx = np.polynomial.legendre.leggauss(n_gl)
+    dirs, weights = [], []
+    for j in range(height - 1):
+        c0, c1 = math.cos(math.pi * j / (height - 1)), math.cos(math.pi * (j + 1) / (height - 1))
+        cos_t = 0.5 * (c0 + c1) + 0.5 * (c0 - c1) * x
+        for i in range(width):
+            phi = 2 * math.pi * ((i + (np.arange(n_phi) + 0.5) / n_phi) / width + 0.5 / width)
+            ct, ph = np.meshgrid(cos_t, phi, indexing="ij")
+            st = np.sqrt(1 - ct * ct)
+            local = np.stack([np.sin(ph) * st, ct, -np.cos(ph) * st], axis=-1).reshape(-1, 3)
+            dirs.append(local @ env.rotation.T)
+            weights.append(np.repeat(0.5 * (c0 - c1) * wx, n_phi) * (2 * math.pi / width / n_phi))
+    return np.vstack(dirs), np.concatenate(weights)
+
+
 def integrate(scene: Scene, r: int, technique: str) -> float:
     """∫ direction_pdf over the sphere by the rule that suits the technique."""
-    if TECHNIQUES[technique].light:
+    if TECHNIQUES[technique].environment:
+        dirs, weights = environment_rule(scene)
+    elif TECHNIQUES[technique].light:
         dirs, weights = area_rule(scene, r)
     else:
         dirs, weights = sphere_rule(_axis(scene, r, technique))

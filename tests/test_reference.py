@@ -49,9 +49,11 @@ from warpis.kernels.integrand import MATERIALS, evaluate_integrand
 from warpis.kernels.techniques import TECHNIQUES as REGISTERED
 from warpis.scenes import load_scene
 
-# Every technique that applies to irradiance receivers: all but the glossy materials' lobes.
+# Every technique that applies to irradiance receivers under emitter triangles: all but
+# the glossy materials' lobes and the environment's (its closed form, F = albedo · L under
+# a constant environment, is tests/test_environment.py's).
 LOBES = {m.bsdf_technique for m in MATERIALS.values() if not m.diffuse}
-TECHNIQUES = tuple(t for t in REGISTERED if t not in LOBES)
+TECHNIQUES = tuple(t for t, e in REGISTERED.items() if t not in LOBES and not e.environment)
 N, TRIALS = 1024, 1024
 Z_MAX = 4.5  # two-sided normal tail 6.8e-6 per comparison (module docstring)
 

@@ -60,11 +60,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 import warp as wp
-from conftest import write_scene
+from conftest import concat_meshes, sky_environment, write_scene
 from test_light_pdf import ray_crossings, triangle_solid_angles
 from scipy.stats import chi2
 
+from warpis import Scene
 from warpis.analysis.stats import sidak_threshold
 from warpis.kernels.engine import run_trials
 from warpis.kernels.integrand import evaluate_integrand
@@ -118,12 +120,43 @@ def scenes(tmp_path_factory):
         def __missing__(self, name):
             if name == "horizon-quad":
                 scene = load_scene(_horizon_scene(tmp_path_factory.mktemp("horizon-quad")))
+            elif name == "sky":
+                scene = _sky_scene()
             else:
                 scene = load_scene(name)
             self[name] = scene
             return scene
 
     return Scenes()
+
+
+def _sky_scene():
+    """Two tilted lambert receivers on a floor under conftest's procedural sky (its sun,
+    black cells and a general rotation), with a box beside them: the envmap's cases."""
+    floor = (np.array([[-2.0, -2.0, 0.0], [2.0, -2.0, 0.0], [2.0, 2.0, 0.0], [-2.0, 2.0, 0.0]]),
+             np.array([[0, 1, 2], [0, 2, 3]]), 0.0)
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.6))
+    box.apply_translation((0.6, 0.0, 0.3))
+    vertices, triangles, emission = concat_meshes([floor, (box.vertices, box.faces, 0.0)])
+    return Scene.from_arrays(vertices, triangles, emission, [[0.0, 0.0, 0.0], [-0.5, 0.7, 0.0]],
+                             _unit(np.array([[0.2, -0.1, 1.0], [-0.3, 0.4, 0.9]])), material="lambert", albedo=0.5,
+                             environment=sky_environment(), name="sky")
+
+
+def _numpy_envmap_pdf(scene, w: np.ndarray) -> np.ndarray:
+    """The envmap pdf in float64 from the scene's environment: its cell's share of the
+    exact cell energies over the cell's solid angle."""
+    from warpis.scenes.environment import cell_energies
+
+    env = scene.environment
+    height, width = env.texels.shape
+    energy = cell_energies(env.table)
+    v = w @ env.rotation
+    u = np.arctan2(v[:, 0], -v[:, 2]) / (2 * math.pi) - 0.5 / width
+    i = np.minimum(((u - np.floor(u)) * width).astype(int), width - 1)
+    j = np.minimum((np.arccos(np.clip(v[:, 1], -1, 1)) / math.pi * (height - 1)).astype(int), height - 2)
+    omega = 2 * math.pi / width * (np.cos(math.pi * j / (height - 1)) - np.cos(math.pi * (j + 1) / (height - 1)))
+    return energy[j, i] / energy.sum() / omega
 
 
 def _shading_point(scene, r: int) -> np.ndarray:
@@ -341,6 +374,8 @@ def _numpy_pdf(scene, r: int, technique: str, w: np.ndarray) -> np.ndarray:
         return np.where(c > 0.0, (e + 1.0) / (2.0 * math.pi) * np.maximum(c, 0.0) ** e, 0.0)
     if technique in LIGHTS:
         return _numpy_light_pdfs(scene, r, w)[0][technique]
+    if technique == "envmap":
+        return _numpy_envmap_pdf(scene, w)
     if technique == "bsdf":  # the receiver material's own sampling
         material = scene.receivers.material_of(r)
         # The microfacet materials' densities are held against Mitsuba's in test_microfacet.py.
@@ -432,6 +467,8 @@ SCENE_CASES = [
 OWN_CASES = {
     "phong": [("veach-plates", r, w) for r, w in
               [(0, "sphere"), (0, ("lobe", 1e-3)), (5, ("lobe", 1e-3)), (9, ("lobe", 1e-3)), (14, ("lobe", 1e-3))]],
+    # The environment's technique, on the whole sphere about each receiver's normal.
+    "envmap": [("sky", r, "sphere") for r in (0, 1)],
 }
 # Every other technique that samples the hemisphere about the normal is tested on the
 # plain sphere at each receiver of SCENE_CASES (horizon-quad excepted: it is about lights).
@@ -613,6 +650,7 @@ def test_chi2_bites_light_area_samples_against_light_power_pdf(scenes):
 PDF_CASES = [(name, r, tech) for name, receivers, _ in SCENE_CASES for r in receivers
              for tech in ((HEMISPHERE if name != "horizon-quad" else ()) + LIGHTS
                           + tuple(t for t, cases in OWN_CASES.items() if name in {c[0] for c in cases}))]
+PDF_CASES += [("sky", r, tech) for r in (0, 1) for tech in HEMISPHERE + ("envmap",)]
 
 
 NUMPY_SUBSET = 4000  # of the 200,000 samples per case, held against the numpy pdf

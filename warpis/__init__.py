@@ -16,6 +16,7 @@ else:  # pragma: no cover - warp-lang before the logging API
 
 from .errors import WarpisError  # noqa: E402
 from .scenes import Scene, bundled_scenes, load_scene  # noqa: E402
+from .scenes.environment import Environment  # noqa: E402
 from .kernels.engine import run_moments, run_trials  # noqa: E402
 from .kernels.integrand import ShadingPoint  # noqa: E402
 from .kernels.patterns import register_pattern, unregister_pattern  # noqa: E402
@@ -24,6 +25,6 @@ from .kernels.techniques import register_technique, unregister_technique  # noqa
 from .analysis.stats import variance_interval  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["Scene", "ShadingPoint", "WarpisError", "bundled_scenes", "load_scene", "register_pattern",
+__all__ = ["Environment", "Scene", "ShadingPoint", "WarpisError", "bundled_scenes", "load_scene", "register_pattern",
            "register_technique", "run_moments", "run_trials", "uniform", "unregister_pattern", "unregister_technique",
            "variance_interval", "__version__"]

@@ -142,7 +142,17 @@ def cmd_info(args: argparse.Namespace) -> int:
     groups = [{"name": name, "receivers": int((rx.group == g).sum()),
                "material": rx.material_name(int(np.flatnonzero(rx.group == g)[0]))}
               for g, name in enumerate(rx.group_names)]
-    s.update({"description": scene.description, "emitters": emitters, "receiver_groups": groups})
+    env = scene.environment
+    environment = None if env is None else {
+        "kind": env.kind, "resolution": list(env.resolution), "power": env.power,
+        "brightest_1_percent_share": env.brightest_share()}
+    delta = scene.delta_lights
+    delta_lights = [] if delta is None else [
+        {"label": label, "kind": kind, "irradiance_min": float(delta.irradiance[:, k].min()),
+         "irradiance_max": float(delta.irradiance[:, k].max())}
+        for k, (label, kind) in enumerate(zip(delta.labels, delta.kinds))]
+    s.update({"description": scene.description, "emitters": emitters, "receiver_groups": groups,
+              "environment": environment, "delta_lights": delta_lights})
     lines = [_SUMMARY_HEAD, _summary_line(s)]
     if scene.description:
         lines.insert(0, scene.description)
@@ -150,6 +160,14 @@ def cmd_info(args: argparse.Namespace) -> int:
     lines.append(f"{'emitter mesh':<28} {'triangles':>9} {'radiance':>10} {'area':>10} {'power':>10}")
     for e in emitters:
         lines.append(f"{e['mesh']:<28} {e['triangles']:>9} {e['radiance']:>10.4g} {e['area']:>10.4g} {e['power']:>10.4g}")
+    if env is not None:
+        width, height = env.resolution
+        lines.append(f"environment ({env.kind}): {width} × {height} texels, ∫ L dω = {env.power:.6g} over the sphere, "
+                     f"{100 * env.brightest_share():.3g}% of it in its brightest 1% of texels")
+    for d in delta_lights:
+        lines.append(f"delta light {d['label']} ({d['kind']}): irradiance {d['irradiance_min']:.6g} to "
+                     f"{d['irradiance_max']:.6g} at the receivers, an exact term in every estimate (reference: "
+                     f"its 'delta')")
     lines.append("")
     lines.append("receiver groups: " + ", ".join(f"{g['name']} ({g['receivers']}, {g['material']})" for g in groups))
     s["notes"] = list(scene.notes)
@@ -175,7 +193,8 @@ def cmd_reference(args: argparse.Namespace) -> int:
         rel = r.stderr / abs(r.value) if r.value else 0.0
         how = r.method if r.method == "closed-form" else f"{r.method} {r.estimator} ({r.samples} samples)"
         miss = "" if r.target_met is not False else "  MISSED TARGET"
-        lines.append(f"{r.index:>8} {r.value:>14.9g} {r.stderr:>11.3g} {rel:>9.2g}  {how}{miss}")
+        exact = f", delta lights {r.delta:.9g} of it" if scene.delta_lights is not None else ""
+        lines.append(f"{r.index:>8} {r.value:>14.9g} {r.stderr:>11.3g} {rel:>9.2g}  {how}{exact}{miss}")
     _emit(data, args.json, "\n".join(lines))
     return 0
 

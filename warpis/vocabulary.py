@@ -343,6 +343,7 @@ class Technique(Entry):
     """A sampling technique: a map u → ω with its solid-angle pdf (techniques.py)."""
 
     light: bool = False  # samples the emitters; its pdf sums over every emitter crossing
+    environment: bool = False  # samples the environment light (a scene needs one to run it)
     inverse_pdf_integral: float | None = None  # ∫ 1/g dω over the hemisphere (eq17); None: not known
     cost: float = 1.0  # relative CPU cost of one sample: ranks quadrature candidates (reference.py)
 

@@ -35,14 +35,14 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from ..errors import WarpisError
 from ..kernels.engine import as_scene, run_trials, select_receivers
 from ..kernels.estimators import parse_estimator
-from ..kernels.integrand import MATERIALS
+from ..kernels.integrand import MATERIALS, delta_terms
 from ..kernels.techniques import TECHNIQUES
 from ..limits import count as check_count
 from ..limits import seed as check_seed
@@ -93,6 +93,7 @@ class Reference:
     estimator: str = ""  # the quadrature's estimator; "" for the closed form
     rel_error: float | None = None  # the target asked for; None in fixed mode
     target_met: bool | None = None  # stderr within the target; None in fixed mode
+    delta: float = 0.0  # the delta lights' exact term, included in value (0 without delta lights)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -105,9 +106,17 @@ def quadrature_estimator(scene: Scene, receiver: int) -> str:
     veach-plates' glossy receivers at the same cost (at N = 1024 to 65536).
     """
     material = scene.receivers.material_of(receiver)
-    if material.diffuse:
-        return "jittered:single:light-solid-angle"
-    return f"jittered:power:light-solid-angle+{material.bsdf_technique}"
+    lights = _lights(scene)
+    if material.diffuse and len(lights) == 1:
+        return f"jittered:single:{lights[0]}"
+    return f"jittered:power:{'+'.join(lights)}+{material.bsdf_technique}"
+
+
+def _lights(scene: Scene) -> tuple[str, ...]:
+    """The light techniques that together cover every emitter of ``scene``: light-solid-angle
+    for its emitter triangles, envmap for its environment."""
+    return (("light-solid-angle",) if scene.emitter_count else ()) + \
+        (("envmap",) if scene.environment is not None else ())
 
 
 def candidates(scene: Scene, receiver: int) -> tuple[str, ...]:
@@ -125,9 +134,16 @@ def candidates(scene: Scene, receiver: int) -> tuple[str, ...]:
     these bounded integrands have light tails, so the t-based stderr holds.
     """
     material = scene.receivers.material_of(receiver)
+    bsdf = f"jittered:single:{material.bsdf_technique}"
+    if scene.environment is not None:
+        # One light technique covers only its own emitters: with an environment and
+        # emitter triangles both, light sampling is their MIS.
+        lights = _lights(scene)
+        light = f"jittered:single:{lights[0]}" if len(lights) == 1 else f"jittered:balance:{'+'.join(lights)}"
+        return light, bsdf
     if material.diffuse:
         return DIFFUSE_CANDIDATES
-    return ("jittered:single:light-solid-angle", f"jittered:single:{material.bsdf_technique}")
+    return ("jittered:single:light-solid-angle", bsdf)
 
 
 def check_rel_error(value: object, what: str = "rel_error") -> float:
@@ -197,9 +213,10 @@ def reference(
     values, diffuse = _lambert(scene, idx)
     exact = _unblocked(scene, idx, diffuse, progress, stage) if closed_form else np.zeros(len(idx), bool)
     out: dict[int, Reference] = {}
+    delta = delta_terms(scene)
     for i, r in enumerate(idx):
-        if exact[i]:
-            out[int(r)] = Reference(int(r), float(values[i]), 0.0, "closed-form", 0, "", target,
+        if exact[i]:  # the closed form is the area lights' part; the quadrature's estimates carry delta already
+            out[int(r)] = Reference(int(r), float(values[i] + delta[r]), 0.0, "closed-form", 0, "", target,
                                     None if target is None else True)
     todo = [int(r) for r in idx if int(r) not in out]
     floor = {int(r): FLOOR * abs(float(values[i])) for i, r in enumerate(idx)}
@@ -211,7 +228,7 @@ def reference(
     elif todo:
         out.update(targeted_quadrature(scene, todo, target, budget, replicas, seed, floor, tick))
         _warn_missed([out[r] for r in todo], budget, replicas)
-    return [out[int(r)] for r in idx]
+    return [replace(out[int(r)], delta=float(delta[r])) for r in idx]
 
 
 def _lambert(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -221,6 +238,8 @@ def _lambert(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rx = scene.receivers
     # The integrand shades at the receiver position x itself (no offset along n).
     values = triangle_irradiance(rx.positions[idx], rx.normals[idx], scene.triangle_vertices(), scene.emission)
+    if scene.environment is not None:  # a scale only: F itself is never this (see _unblocked)
+        values = values + scene.environment.irradiance(rx.normals[idx])
     diffuse = np.zeros(len(idx), bool)
     albedo = np.empty(len(idx))
     for material in MATERIALS.values():
@@ -241,7 +260,7 @@ def _unblocked(scene: Scene, idx: np.ndarray, among: np.ndarray, progress: Progr
     on the bounding box of the triangles and these receivers), so the result is the same.
     """
     out = np.zeros(len(idx), bool)
-    if not among.any():
+    if not among.any() or scene.environment is not None:  # the closed form knows no environment
         return out
     rx, sel = scene.receivers, idx[among]
     tris, emits = scene.triangle_vertices(), scene.emission != 0.0
@@ -306,8 +325,10 @@ def fixed_quadrature(scene: Scene, receivers: list[int], n: int, replicas: int, 
     out: dict[int, Reference] = {}
     for spec in sorted({quadrature_estimator(scene, r) for r in receivers}):
         group = [r for r in receivers if quadrature_estimator(scene, r) == spec]
-        for r, (mean, se) in _run(scene, spec, n, group, replicas, seed, tick).items():
-            out[r] = Reference(r, mean, se, "quadrature", n * replicas, spec)
+        k = len(parse_estimator(spec).techniques)  # MIS of k techniques: n a multiple of k
+        m = n if _runs_at(spec, n) else max(k, n // k * k)
+        for r, (mean, se) in _run(scene, spec, m, group, replicas, seed, tick).items():
+            out[r] = Reference(r, mean, se, "quadrature", m * replicas, spec)
     return out
 
 

@@ -56,8 +56,8 @@ from ..kernels.engine import default_threads
 from ..kernels.estimators import COMBINERS, Estimator, parse_estimator
 from ..kernels.integrand import integrand, shading_point
 from ..kernels.patterns import PATTERNS
-from ..kernels.techniques import (TECHNIQUES, LightTable, dispatch, light_table, sample_direction, technique_pdf,
-                                  user_techniques)
+from ..kernels.techniques import (TECHNIQUES, LightTable, check_lights, dispatch, light_table, sample_direction,
+                                  technique_pdf, user_techniques)
 from ..scenes import Scene
 from ..vocabulary import Blocks, WeightContext
 from .point_sets import MAX_POINTS_PER_CALL
@@ -136,6 +136,7 @@ class _Evaluator:
 
     @classmethod
     def of(cls, scene: Scene, techniques: tuple[str, ...]) -> _Evaluator:
+        check_lights(scene, techniques)
         up = upload(scene)
         codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32,
                          device=up.device)

@@ -28,6 +28,7 @@ import warp as wp
 
 from ..errors import WarpisError
 from .bvh import PARALLEL, PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, magnitude, upload_wide_bvh, vec64
+from .environment import EnvironmentData
 
 if TYPE_CHECKING:
     from ..scenes import Scene
@@ -73,6 +74,9 @@ class SceneData:
     # roughplastic's precomputed transmittance (and internal reflectance) per distinct
     # (distribution, alpha, eta) of the receivers: microfacet.plastic_table rows.
     plastic_table: wp.array2d(dtype=wp.float32)
+    # The radiance of rays that leave the scene, and its sampling (environment.py);
+    # environment.present = 0 for a scene without an environment light.
+    environment: EnvironmentData
 
 
 @wp.struct
@@ -171,6 +175,8 @@ def device_cache_keys() -> list[tuple[str, str]]:
 
 def _cdf(weights: np.ndarray) -> np.ndarray:
     c = np.concatenate([[0.0], np.cumsum(weights, dtype=np.float64)])
+    if c[-1] <= 0:  # no emitter triangle: the light techniques are refused (techniques.py)
+        return np.zeros(len(c), np.float32)
     c /= c[-1]
     c[-1] = 1.0
     return c.astype(np.float32)
@@ -368,7 +374,10 @@ def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, 
     indices = wp.array(scene.triangles.reshape(-1).astype(np.int32), dtype=wp.int32)
     mesh = wp.Mesh(points=points, indices=indices)
     lower, upper = _emitter_boxes(scene.triangle_vertices(scene.emitters))
-    emitter_bvh = wp.Bvh(wp.array(lower, dtype=wp.vec3), wp.array(upper, dtype=wp.vec3))
+    # A scene lit by its environment alone has no emitter triangle: its emitter BVH (read
+    # only beyond FEW_EMITTERS emitters) holds one empty box.
+    boxes = (lower, upper) if len(lower) else (np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32))
+    emitter_bvh = wp.Bvh(wp.array(boxes[0], dtype=wp.vec3), wp.array(boxes[1], dtype=wp.vec3))
     lower_all, upper_all = (lower.min(axis=0), upper.max(axis=0)) if len(lower) else (np.zeros(3), np.zeros(3))
     d = SceneData()
     d.mesh = mesh.id
@@ -395,7 +404,41 @@ def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, 
     d.emitter_upper = wp.vec3(*upper_all.astype(np.float32))
     d.planar_emitters = int(planar_emitters(scene.triangle_vertices(scene.emitters)))
     d.plastic_table = wp.array(plastic_table, dtype=wp.float32)
+    d.environment = environment_data(scene)
     return d, mesh, emitter_bvh
+
+
+def environment_data(scene: Scene) -> Any:
+    """The EnvironmentData struct of ``scene`` on the current device: its table, rotation
+    and the ``envmap`` technique's CDFs over the cells' exact energies (a small empty
+    table, ``present`` = 0, for a scene without an environment)."""
+    from ..scenes.environment import cell_energies  # the scenes import this module
+
+    env = scene.environment
+    e = EnvironmentData()
+    texels = np.zeros((3, 3)) if env is None else env.table
+    energy = cell_energies(texels)
+    rows = energy.sum(axis=1)
+    total = float(rows.sum())
+    e.present = 0 if env is None else 1
+    e.texels = wp.array(texels.astype(np.float32), dtype=wp.float32)
+    rotation = np.eye(3) if env is None else env.rotation
+    e.to_world = wp.mat33(*rotation.astype(np.float32).ravel())
+    e.to_local = wp.mat33(*rotation.T.astype(np.float32).ravel())
+    e.row_cdf = wp.array(_cdf64(rows), dtype=wp.float64)
+    e.col_cdf = wp.array(np.stack([_cdf64(row) for row in energy]), dtype=wp.float64)
+    e.total = total
+    return e
+
+
+def _cdf64(weights: np.ndarray) -> np.ndarray:
+    """0, the normalised running sums of ``weights``, … 1 (all zeros when they sum to 0)."""
+    c = np.concatenate([[0.0], np.cumsum(weights, dtype=np.float64)])
+    if c[-1] <= 0:
+        return np.zeros_like(c)
+    c /= c[-1]
+    c[-1] = 1.0
+    return c
 
 
 def _receiver_data(scene: Scene, d: Any, plastic_row: np.ndarray) -> Any:

@@ -32,7 +32,8 @@ from ..analysis.stats import SampleMoments
 from ..errors import WarpisError
 from .device import DeviceScene, upload
 from .estimators import Estimator, KernelArgs, parse_estimator, pilot_kernel_for_registry, trial_kernel_for_registry
-from .techniques import light_table
+from .integrand import delta_terms
+from .techniques import check_lights, light_table
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes import Scene
@@ -103,6 +104,9 @@ class _Job:
     upload: DeviceScene  # owns the mesh and BVH that head's struct knows by id only
     kernel: Any  # the trial kernel (the built-in one unless user techniques are registered)
     first: int = 0  # the first trial to run: trials first..trials−1 (a cluster task runs a range)
+    # (R, 1): the delta lights' exact term at each row's receiver, added to every trial
+    # (integrand.delta_terms); None when the scene has no delta light.
+    delta: np.ndarray | None = None
 
     def launch(self, start: int, count: int, buf: wp.array) -> None:
         """Trials start..start+count−1 of every receiver into columns 0..count−1 of ``buf``."""
@@ -120,13 +124,20 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     seed = limits.seed(seed)
     args = KernelArgs.of(est, n)
     rx = select_receivers(scene, receivers)
+    check_lights(scene, est.techniques)
+    delta = None
+    if scene.delta_lights is not None:
+        if not est.combiner_entry.unbiased:
+            raise WarpisError(f"estimator {est.spec}: its mean is ∫ f g of the sampled light, and scene "
+                              f"{scene.name!r} has delta lights, whose term no sample sees: use an unbiased combiner")
+        delta = delta_terms(scene)[rx][:, None]
     up = upload(scene)
     dev = up.device
     head = (up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=dev))
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
     tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols, args.pilot,
             args.parameter, wp.array(_alphas(scene, est, rx), dtype=wp.vec4d, device=dev))
-    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry(), first)
+    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry(), first, delta)
 
 
 def _alphas(scene: Scene, est: Estimator, rows: np.ndarray) -> np.ndarray:
@@ -184,6 +195,8 @@ def _drive(job: _Job, work: Callable[[int, np.ndarray], T], finish: Callable[[in
             local.buf = wp.empty((job.rows, size), dtype=wp.float64, device=job.device)
         job.launch(start, count, local.buf)
         values = local.buf.numpy()[:, :count]
+        if job.delta is not None:  # the delta lights' exact term: every estimate of F carries it
+            values = values + job.delta
         _check_finite(job, start, values)
         return work(start, values)
 

@@ -7,8 +7,13 @@ emission, which is also how visibility V enters), and ρ is 1 (irradiance), albe
 the mirror direction of the view, or one of Mitsuba 3's microfacet BSDFs (roughconductor,
 roughplastic; :mod:`.microfacet`) divided by its cosine factor.
 
+A ray that hits nothing sees the scene's environment light, if it has one (Mitsuba's
+envmap lookup, :mod:`.environment`), else nothing.
+
 How a value is found: only emitters have Le > 0, so the first triangle the ray hits
 matters only if it is an emitter, and then it is the nearest emitter the ray crosses.
+With an environment every ray that crosses no emitter may still bring light, so f asks
+one closest-hit query instead.
 f therefore takes the nearest crossing with an emitter triangle (a loop over them, or
 their own small BVH: :mod:`.emitters`), and f = 0 at once when there is none or it is a
 back face; else one shadow ray, an any-hit query (:mod:`.bvh`) over the segment up to
@@ -40,7 +45,7 @@ changes F by a second-order amount (docs/theory.md, "The integrand at a receiver
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import warp as wp
@@ -49,6 +54,7 @@ from ..vocabulary import Material, Registry
 from .bvh import SELF_HIT, any_hit_between, closest_hit_from
 from .device import ReceiverData, SceneData, upload
 from .emitters import nearest_emitter
+from .environment import environment_radiance
 from .microfacet import conductor_brdf, plastic_brdf
 from .shading import ShadingPoint, with_frame
 from .warps import INV_2PI, INV_PI
@@ -57,7 +63,7 @@ if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes import Scene
     from ..scenes.description import Receivers
 
-__all__ = ["MATERIALS", "ShadingPoint", "brdf", "evaluate_integrand", "integrand", "shading_point"]
+__all__ = ["MATERIALS", "ShadingPoint", "brdf", "delta_terms", "evaluate_integrand", "integrand", "shading_point"]
 
 
 def _unit_rho(rx: Receivers, rows: np.ndarray) -> np.ndarray:
@@ -192,7 +198,7 @@ def incident_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
     directions cross no emitter and cast no ray); elsewhere one closest-hit query, which
     for sphere lights and emitters in several planes costs less than finding the nearest
     crossing among many emitter triangles first."""
-    if scene.planar_emitters != 0:
+    if scene.planar_emitters != 0 and scene.environment.present == 0:
         return radiance_beyond(scene, p, wp.vec3(0.0), w, 0.0)  # p is on no surface: no plane of its own
     return closest_radiance(scene, p, wp.vec3(0.0), w, 0.0)
 
@@ -201,9 +207,11 @@ def incident_radiance(scene: SceneData, p: wp.vec3, w: wp.vec3) -> float:
 def closest_radiance(scene: SceneData, p: wp.vec3, n: wp.vec3, w: wp.vec3, lead: float) -> float:
     """Le of the first surface the ray (p, ω) hits beyond distance ``lead``, from one
     closest-hit query (hits on the plane through p of normal n are rounding, and are
-    ignored; n = 0 for a p on no surface)."""
+    ignored; n = 0 for a p on no surface); the environment's radiance if it hits none."""
     hit = closest_hit_from(scene.bvh, scene.mesh, p, n, p + lead * w, w, FAR)
-    if hit.face < 0 or hit.sign <= 0.0:  # a miss, or a back face: emission is one-sided
+    if hit.face < 0:  # the ray leaves the scene
+        return environment_radiance(scene.environment, w)
+    if hit.sign <= 0.0:  # a back face: emission is one-sided
         return 0.0
     return scene.tri_emission[hit.face]
 
@@ -231,7 +239,9 @@ def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int3
     # One call site per query: each is inlined wherever f is, and the trial kernel has f
     # in several places.
     le = float(0.0)
-    if known < 0 and scene.planar_emitters == 0:
+    # With an environment, a ray that crosses no emitter may still bring light: one
+    # closest-hit query says what it sees.
+    if known < 0 and (scene.planar_emitters == 0 or scene.environment.present != 0):
         le = closest_radiance(scene, sp.p, sp.ng, w, lead)
     else:
         k = known
@@ -256,6 +266,66 @@ def integrand_via(scene: SceneData, sp: ShadingPoint, w: wp.vec3, known: wp.int3
 def integrand(scene: SceneData, sp: ShadingPoint, w: wp.vec3) -> float:
     """f(ω) = Le(ω) · ρ(ω) · max(0, n·ω) at the shading point."""
     return integrand_via(scene, sp, w, -1, 0.0)
+
+
+@wp.func
+def delta_term(scene: SceneData, sp: ShadingPoint, w: wp.vec3, t: float, e: float) -> float:
+    """One delta light's term E · ρ(ω) · max(0, n·ω) · V at the shading point: the light is
+    at distance t along ω (t ≥ FAR: a directional light, the ray must leave the scene)
+    and casts irradiance E on a surface facing it (scenes/delta.py).  The shadow ray
+    follows f's rules: it leaves the receiver's slab and ignores its plane; a point
+    light lies on no surface, so its end keeps only the slab of its own magnitude."""
+    cos_n = wp.dot(sp.n, w)
+    if cos_n <= 0.0 or e <= 0.0:
+        return 0.0
+    rho = brdf(scene, sp, w)
+    if rho == 0.0:
+        return 0.0
+    lead = sp.slab / wp.max(wp.abs(wp.dot(sp.ng, w)), 1.0e-12)
+    length = FAR
+    if t < FAR:
+        y = sp.p + t * w
+        length = t - lead - SELF_HIT * wp.max(wp.max(wp.abs(y[0]), wp.abs(y[1])), wp.abs(y[2]))
+    if length > 0.0 and any_hit_between(scene.bvh, scene.mesh, sp.p, sp.ng, sp.p, sp.ng, sp.p + lead * w, w, length):
+        return 0.0
+    return e * rho * cos_n
+
+
+@wp.kernel(enable_backward=False)
+def _delta_kernel(scene: SceneData, recv: ReceiverData, dirs: wp.array2d(dtype=wp.vec3),
+                  dist: wp.array2d(dtype=wp.float32), irr: wp.array2d(dtype=wp.float32),
+                  out: wp.array(dtype=wp.float64)):
+    r = wp.tid()
+    sp = shading_point(scene, recv, r)
+    total = wp.float64(0.0)
+    for k in range(dirs.shape[1]):
+        total += wp.float64(delta_term(scene, sp, wp.normalize(dirs[r, k]), dist[r, k], irr[r, k]))
+    out[r] = total
+
+
+def delta_terms(scene: Scene) -> np.ndarray:
+    """(R,) the exact term of the scene's delta lights at each receiver, Σ_l E_l ρ cos V
+    (zeros without delta lights); computed once per upload, read-only."""
+    up = upload(scene)
+    return up.cached("delta_terms", lambda: _delta_terms(scene, up))
+
+
+def _delta_terms(scene: Scene, up: Any) -> np.ndarray:
+    delta = scene.delta_lights
+    count = len(scene.receivers)
+    if delta is None or len(delta) == 0:
+        out = np.zeros(count)
+    else:
+        dev = up.device
+        dist = np.where(np.isinf(delta.distances), 2.0 * float(FAR), delta.distances)
+        dirs = wp.array(delta.directions.astype(np.float32), dtype=wp.vec3, device=dev)
+        d = wp.array(dist.astype(np.float32), dtype=wp.float32, device=dev)
+        e = wp.array(delta.irradiance.astype(np.float32), dtype=wp.float32, device=dev)
+        res = wp.zeros(count, dtype=wp.float64, device=dev)
+        wp.launch(_delta_kernel, dim=count, inputs=[up.data, up.receiver_data, dirs, d, e, res], device=dev)
+        out = res.numpy()
+    out.flags.writeable = False
+    return out
 
 
 @wp.kernel(enable_backward=False)

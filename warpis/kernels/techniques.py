@@ -22,6 +22,13 @@ Techniques (entries of ``TECHNIQUES`` (below)):
                        roughplastic a choice between its specular and diffuse lobes (weight
                        from its transmittance at the view) followed by either; the pdf sums
                        both lobes' densities.
+``envmap``             the environment light's cells picked by their energy ∫ L dω, then a
+                       direction uniform in solid angle within the cell (environment.py);
+                       on the whole sphere, like phong.  Area emitters are the light
+                       techniques' and the environment is this one's: a scene lit by both
+                       combines them as separate techniques (MIS or a mixture), whose
+                       weights are explicit, rather than as one technique of hidden pick
+                       probabilities.
 
 The pdf convention, relied on by MIS and by the theory: ``technique_pdf(ω)`` is the density
 of the direction ω that ``sample_technique`` produces, whatever ω hits first.  For light
@@ -46,15 +53,18 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import warp as wp
 
+from ..errors import WarpisError
 from ..vocabulary import Registry, Technique, UserEntries, UserEntry
 from .device import DeviceScene, ReceiverData, SceneData, upload
 from .emitters import (CROSSING_TOLERANCE, FEW_EMITTERS, emitter_corner, emitter_corner64, emitter_faces, meets_box,
                        ray_triangle)
+from .environment import environment_pdf, sample_environment
 from .integrand import PHONG as PHONG_MATERIAL
 from .integrand import ROUGHCONDUCTOR, ROUGHPLASTIC, ShadingPoint, shading_point
 from .microfacet import conductor_pdf, conductor_sample, plastic_pdf, plastic_sample
@@ -90,6 +100,10 @@ TECHNIQUES: Registry[Technique] = Registry("technique", [
                                                "microfacet normals (roughconductor), a lobe choice then either "
                                                "(roughplastic)",
               inverse_pdf_integral=math.inf),
+    # Its pdf vanishes in cells of zero radiance, so ∫ 1/g dω is infinite in general.
+    Technique(name="envmap", code=7, description="the environment light's cells by their energy, then uniform in "
+                                                 "solid angle within the cell",
+              environment=True, inverse_pdf_integral=math.inf, cost=2.0),
 ])
 
 
@@ -101,6 +115,7 @@ LIGHT_AREA = wp.constant(TECHNIQUES["light-area"].code)
 LIGHT_POWER = wp.constant(TECHNIQUES["light-power"].code)
 LIGHT_SOLID_ANGLE = wp.constant(TECHNIQUES["light-solid-angle"].code)
 BSDF = wp.constant(TECHNIQUES["bsdf"].code)
+ENVMAP = wp.constant(TECHNIQUES["envmap"].code)
 
 # Crossings a pdf evaluation remembers, so that a ray through an edge (or corner) shared
 # by several emitter triangles, which each of them reports, counts that crossing once.
@@ -352,6 +367,8 @@ def technique_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: Shadi
         return cosine_hemisphere_pdf(wp.dot(w, sp.n))
     if tech == PHONG:
         return phong_lobe_pdf(wp.dot(w, sp.lobe_axis), sp.exponent)
+    if tech == ENVMAP:
+        return environment_pdf(scene.environment, w)
     return light_pdf(tech, scene, table, sp, w)
 
 
@@ -366,6 +383,8 @@ def sample_direction(tech: wp.int32, scene: SceneData, table: LightTable, sp: Sh
         return to_world(square_to_cosine_hemisphere(u), sp.n)
     if tech == PHONG:
         return to_world(square_to_phong_lobe(u, sp.exponent), sp.lobe_axis)
+    if tech == ENVMAP:
+        return sample_environment(scene.environment, u)
     return sample_light(tech, scene, table, sp, u)
 
 
@@ -533,6 +552,30 @@ def numpy_kernels(user: tuple[UserEntry, ...]) -> tuple[Any, Any]:
     return _make_numpy_kernels(sampler(user), dispatch(user)[1], "unique")
 
 
+def check_lights(scene: Scene, techniques: Sequence[str], estimates_f: bool = True) -> None:
+    """A one-line error unless ``scene`` has what each technique samples (emitter triangles
+    for the light techniques, an environment for ``envmap``) and, for an estimator of F
+    (``estimates_f``), the set reaches all of its light: light techniques alone never see
+    an environment, nor envmap alone the emitter triangles (where the map is dark behind
+    them), so either alone would estimate part of F and print it as F."""
+    entries = [TECHNIQUES.lookup(name) for name in techniques]
+    for tech in entries:
+        if tech.light and scene.emitter_count == 0:
+            raise WarpisError(f"technique {tech.name}: scene {scene.name!r} has no emitter triangle (it is lit by its "
+                              f"environment alone): sample it with envmap or a BSDF technique")
+        if tech.environment and scene.environment is None:
+            raise WarpisError(f"technique {tech.name}: scene {scene.name!r} has no environment light")
+    names = "+".join(techniques)
+    if not estimates_f:
+        return
+    if scene.environment is not None and entries and all(t.light for t in entries):
+        raise WarpisError(f"techniques {names} sample the emitter triangles only and miss the environment light of "
+                          f"scene {scene.name!r}: add envmap or a BSDF technique")
+    if scene.emitter_count and entries and all(t.environment for t in entries):
+        raise WarpisError(f"technique {names} samples the environment only and misses the emitter triangles of "
+                          f"scene {scene.name!r}: add a light or a BSDF technique")
+
+
 def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Map primary samples ``u`` (K, 2) through a technique at one receiver.
 
@@ -541,6 +584,7 @@ def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray
     directions : (K, 3) float32 unit vectors (zero rows where the technique had nothing to sample)
     pdf : (K,) float64 solid-angle densities (0 for failed samples)
     """
+    check_lights(scene, [technique], estimates_f=False)
     up = upload(scene)  # held until the launch is done: the struct knows its mesh by id only
     dev = up.device
     uu = wp.array(np.ascontiguousarray(u, dtype=np.float32), dtype=wp.vec2, device=dev)
@@ -554,6 +598,7 @@ def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray
 
 def direction_pdf(scene: Scene, receiver: int, technique: str, directions: np.ndarray) -> np.ndarray:
     """Solid-angle density of ``technique`` at each of ``directions`` (K, 3) → (K,)."""
+    check_lights(scene, [technique], estimates_f=False)
     up = upload(scene)
     dev = up.device
     dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=dev)

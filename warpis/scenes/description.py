@@ -31,6 +31,8 @@ from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
 from ..vocabulary import Material
 from .camera import ImageLayout
+from .delta import DeltaLights, check_delta_lights
+from .environment import Environment, check_environment
 
 # Emitter triangles whose area is below this fraction of their longest edge squared are
 # needles: no float32 ray can hit them reliably nor can they be sampled with a finite pdf.
@@ -143,6 +145,12 @@ class Scene:
     path: Path | None = None  # the scene file, for a scene loaded from one
     device: str = "cpu"  # Warp device of scene.data and of every kernel run on this scene
     notes: tuple[str, ...] = ()  # what a source wants `warpis info` to say (colour channel, tessellation error)
+    # Radiance from infinitely far away, seen by every ray that leaves the scene
+    # (scenes/environment.py); None: rays that leave see nothing.
+    environment: Environment | None = None
+    # Point, spot and directional lights as seen from each receiver (scenes/delta.py):
+    # their exact term is part of every estimate of F.  None: the scene has none.
+    delta_lights: DeltaLights | None = None
 
     def __post_init__(self) -> None:
         _freeze(self, _SCENE_ARRAYS)
@@ -163,7 +171,8 @@ class Scene:
                     specular_weight: Any = None, group: Any = None, group_names: Sequence[str] | None = None,
                     grid_shape: tuple[int, int] | None = None, triangle_mesh: Any = None,
                     mesh_names: Sequence[str] | None = None, name: str = "arrays", description: str = "",
-                    device: str = "cpu", geometric_normals: Any = None) -> Scene:
+                    device: str = "cpu", geometric_normals: Any = None,
+                    environment: Environment | None = None, delta_lights: DeltaLights | None = None) -> Scene:
         """A validated scene from arrays, with the same checks as a scene file.
 
         Parameters
@@ -202,6 +211,12 @@ class Scene:
             shading normal ``normals`` (a mesh shaded with interpolated vertex normals):
             one (3,) or (R, 3), normalised; default ``normals``.  Rays leave from its
             side and ignore its plane; the BSDF and its cosine use ``normals``.
+        environment
+            An :class:`~warpis.scenes.environment.Environment`: the radiance of rays that
+            leave the scene (then ``emission`` may be all 0).
+        delta_lights
+            A :class:`~warpis.scenes.delta.DeltaLights` table at these receivers: point,
+            spot and directional lights, whose exact term every estimate of F carries.
 
         Raises
         ------
@@ -221,7 +236,7 @@ class Scene:
         return _assemble(where, lambda m: f"{where}: mesh {names[m]!r}", "give some triangle an emission > 0",
                          name=name, vertices=vertices, triangles=triangles, emission=emission, receivers=rx,
                          triangle_mesh=triangle_mesh, mesh_names=names, description=description,
-                         device=str(device))
+                         device=str(device), environment=environment, delta_lights=delta_lights)
 
     def on(self, device: str) -> Scene:
         """The same scene with its kernels on ``device``."""
@@ -235,7 +250,10 @@ class Scene:
         h = hashlib.sha256(_DIGEST_FORMAT)
         rx = self.receivers
         shaded = () if np.array_equal(rx.geometric_normals, rx.normals) else ("receivers.geometric_normals",)
-        for name in DIGEST_FIELDS + shaded:
+        lit = () if self.environment is None else ("environment.texels", "environment.rotation")
+        delta = () if self.delta_lights is None else ("delta_lights.directions", "delta_lights.distances",
+                                                      "delta_lights.irradiance")
+        for name in DIGEST_FIELDS + shaded + lit + delta:
             a = self
             for part in name.split("."):
                 a = getattr(a, part)
@@ -594,9 +612,11 @@ def _drop_needles(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndar
 
 def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, name: str, vertices: Any,
               triangles: Any, emission: Any, receivers: Receivers, triangle_mesh: Any, mesh_names: Any,
-              description: str, device: str, path: Path | None = None, notes: tuple[str, ...] = ()) -> Scene:
+              description: str, device: str, path: Path | None = None, notes: tuple[str, ...] = (),
+              environment: Environment | None = None, delta_lights: DeltaLights | None = None) -> Scene:
     """The one gate of every source (a scene file, arrays): each array against the kernels'
-    limits, degenerate emitters dropped, at least one emitter → a Scene.
+    limits, degenerate emitters dropped, at least one emitter (a triangle or an
+    environment) → a Scene.
 
     ``where`` prefixes errors; ``mesh_where(m)`` names mesh m; ``hint`` says how to add an emitter.
     """
@@ -606,7 +626,17 @@ def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, 
     owner, names = _owners(triangle_mesh, mesh_names, len(t), where)
     _check_receivers(receivers, where)
     e = _drop_needles(v, t, e, owner, mesh_where)
-    if not (e > 0).any():
+    if environment is not None:
+        if not isinstance(environment, Environment):
+            raise fail(where, f"environment: expected an Environment, got {type(environment).__name__}")
+        check_environment(environment, where)
+    if delta_lights is not None:
+        if not isinstance(delta_lights, DeltaLights):
+            raise fail(where, f"delta_lights: expected DeltaLights, got {type(delta_lights).__name__}")
+        check_delta_lights(delta_lights, len(receivers), where)
+    if not (e > 0).any() and (environment is None or environment.power <= 0) and \
+            (delta_lights is None or not (delta_lights.irradiance > 0).any()):
         raise fail(where, f"the scene has no emitter ({hint})")
     return Scene(name=name, vertices=v, triangles=t, emission=e, receivers=receivers, triangle_mesh=owner,
-                 mesh_names=names, description=description, path=path, device=device, notes=tuple(notes))
+                 mesh_names=names, description=description, path=path, device=device, notes=tuple(notes),
+                 environment=environment, delta_lights=delta_lights)

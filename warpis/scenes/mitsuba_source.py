@@ -48,6 +48,8 @@ from ..errors import WarpisError, fail
 from ..kernels.integrand import MATERIALS
 from ..kernels.shading import DISTRIBUTIONS
 from .camera import SURFACE_FIELDS, Camera, camera_receiver_fields, cast_camera, image_side
+from .delta import DeltaLights
+from .environment import Environment
 from .normals import interpolate_normals
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
                           _unit)
@@ -95,7 +97,11 @@ SUPPORTED_BSDFS = ("diffuse, roughconductor and roughplastic (uniform or texture
                    "textured roughconductor alpha), alone or inside twosided (the same BSDF on both sides), on a "
                    "shape that holds receivers (a shape without receivers may have any BSDF: it only blocks light, "
                    "as in Mitsuba's direct integrator)")
-SUPPORTED_EMITTERS = "only area emitters (an <emitter type=\"area\"> inside a <shape>) with uniform radiance"
+SUPPORTED_EMITTERS = ("area emitters (an <emitter type=\"area\"> inside a <shape>) with uniform radiance, an envmap "
+                      "(a rotation as its to_world), a constant emitter of uniform radiance, and point, spot and "
+                      "directional lights")
+_ENVIRONMENTS = {"EnvironmentMapEmitter", "ConstantBackgroundEmitter"}
+_DELTA = {"PointLight": "point", "SpotLight": "spot", "DirectionalEmitter": "directional"}
 
 _SHAPE_PLUGINS = {"OBJMesh": "obj", "PLYMesh": "ply", "SerializedMesh": "serialized", "Cube": "cube",
                   "Rectangle": "rectangle", "Sphere": "sphere", "Disk": "disk", "Cylinder": "cylinder",
@@ -180,7 +186,9 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
     weights = np.array(CHANNELS[channel])
     with _Mitsuba(file) as session:
         scene = session.load()
-        shapes = _shapes(session, scene, file, weights)
+        environment = _environment(session.mi, scene, file, weights)
+        delta_emitters = [e for e in scene.emitters() if e.class_name() in _DELTA]
+        shapes = _shapes(session, scene, file, weights, lit=environment is not None or bool(delta_emitters))
         sensor = _sensor(session.mi, scene)
         lens = _camera(session.mi, scene, file, width, height) if camera else None
         notes = [f"colour channel {channel}: {_CHANNEL_WORDS[channel]}"]
@@ -199,13 +207,21 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
                      "which each of the channels r, g and b matches")
     for s in shapes:
         notes += s.notes
+    if environment is not None:
+        notes += environment.notes
+    delta = None
+    if delta_emitters:
+        with session:
+            delta = _delta_lights(session.mi, delta_emitters, rx.positions, file, weights)
+        notes += _delta_notes(delta)
     notes += receiver_notes
     name = side["name"] or (file.parent.name if file.name == "scene.xml" else file.stem)
-    hint = f"give some <shape> an <emitter type=\"area\"> with a radiance > 0 in channel {channel}"
+    hint = (f"give some <shape> an <emitter type=\"area\">, or the scene an envmap or constant emitter, with a "
+            f"radiance > 0 in channel {channel}")
     return _assemble(file, lambda m: f"{file}: shape {label[m]!r}", hint, name=name, vertices=vertices,
                      triangles=triangles, emission=emission, receivers=rx, triangle_mesh=owner,
                      mesh_names=[s.label for s in shapes], description=side["description"], device=str(device),
-                     path=file, notes=tuple(notes))
+                     path=file, notes=tuple(notes), environment=environment, delta_lights=delta)
 
 
 # ----------------------------------------------------------------------------- Mitsuba
@@ -667,11 +683,12 @@ class _Shape:
     notes: list[str] = field(default_factory=list)
 
 
-def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray) -> list[_Shape]:
+def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray, lit: bool = False) -> list[_Shape]:
+    """The scene's shapes; ``lit``: an environment lights the scene, so it needs no area emitter."""
     mi = session.mi
     for emitter in scene.emitters():
         cls = emitter.class_name()
-        if cls != "AreaLight":
+        if cls != "AreaLight" and cls not in _ENVIRONMENTS and cls not in _DELTA:
             name = f"{emitter.id()!r} ({_EMITTER_PLUGINS.get(cls, cls)})" if emitter.id() else \
                 repr(_EMITTER_PLUGINS.get(cls, cls))
             raise fail(file, f"emitter {name}: warpis supports {SUPPORTED_EMITTERS}")
@@ -702,10 +719,107 @@ def _shapes(session: _Mitsuba, scene: Any, file: Path, weights: np.ndarray) -> l
                                f"area)")
         s.notes += [f"{label}: {note}" for note in dict.fromkeys(notes)]
         out.append(s)
-    if not any(s.radiance is not None for s in out):
+    if not lit and not any(s.radiance is not None for s in out):
         raise fail(file, f"the scene has no emitter: warpis needs at least one <shape> with an "
-                         f"<emitter type=\"area\"> ({SUPPORTED_EMITTERS})")
+                         f"<emitter type=\"area\">, or an envmap or constant emitter ({SUPPORTED_EMITTERS})")
     return out
+
+
+def _environment(mi: Any, scene: Any, file: Path, weights: np.ndarray) -> Environment | None:
+    """The scene's envmap or constant emitter as warpis's Environment (one at most), its
+    table exactly the one Mitsuba looks up (scenes/environment.py)."""
+    found = [e for e in scene.emitters() if e.class_name() in _ENVIRONMENTS]
+    if not found:
+        return None
+    emitter = found[0]
+    cls = emitter.class_name()
+    plugin = _EMITTER_PLUGINS[cls]
+    where = f"{file}: emitter {emitter.id()!r} ({plugin})" if emitter.id() else f"{file}: emitter {plugin!r}"
+    params = _params(mi, emitter)
+    _, fields = _fields(str(emitter))
+    if cls == "ConstantBackgroundEmitter":
+        rgb = _colour(fields, params, "radiance", where, plugin)
+        if np.any(rgb < 0):
+            raise fail(where, f"{plugin}: radiance {rgb.tolist()} is negative in some channel")
+        texels, rotation = np.full((3, 2), float(weights @ rgb)), np.eye(3)
+        text = f"constant environment, radiance {float(weights @ rgb):.6g} (linear sRGB {_triple(rgb)})"
+    else:
+        texels = _envmap_texels(params, fields, where) @ weights * float(params["scale"])
+        m = _matrix(params["to_world"])
+        rotation = m[:3, :3]
+        if not np.all(np.isfinite(m)) or not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-5):
+            raise fail(where, f"{plugin}: its to_world is not a rotation (it scales or shears; Mitsuba does not "
+                              f"normalise a <rotate> axis): warpis supports rotations of the map")
+        if np.any(texels < 0) or not np.all(np.isfinite(texels)):
+            raise fail(where, f"{plugin}: its radiance must be finite and non-negative in every texel")
+        text = f"envmap {fields.get('filename', '<bitmap>').strip(chr(34))}"
+    env = Environment(texels=texels, rotation=rotation, kind=plugin, label=where)
+    width, height = env.resolution
+    note = (f"{text}: {width} × {height} texels, ∫ L dω = {env.power:.6g} over the sphere, its brightest 1% of "
+            f"texels carry {100 * env.brightest_share():.3g}% of it")
+    return Environment(texels=texels, rotation=rotation, kind=plugin, label=where, notes=(note,))
+
+
+def _delta_lights(mi: Any, emitters: list[Any], points: np.ndarray, file: Path, weights: np.ndarray) -> DeltaLights:
+    """What each point, spot or directional light sends to each receiver, as Mitsuba's own
+    ``sample_direction`` says from the receiver's position (intensity, falloff and cone
+    included): its direction and distance, and the irradiance on a surface facing it."""
+    labels, kinds = [], []
+    count = len(points)
+    directions = np.zeros((count, len(emitters), 3))
+    distances = np.zeros((count, len(emitters)))
+    irradiance = np.zeros((count, len(emitters)))
+    for k, emitter in enumerate(emitters):
+        kind = _DELTA[emitter.class_name()]
+        label = emitter.id() or f"{kind} #{k + 1}"
+        where = f"{file}: emitter {label!r} ({kind})"
+        # A spot's texture, like its falloff, is one value towards each receiver: Mitsuba's
+        # sample_direction evaluates it there, so textured spots are exact too.
+        it = mi.Interaction3f()
+        for r, p in enumerate(points.tolist()):
+            it.p = mi.Point3f(*p)
+            ds, spec = emitter.sample_direction(it, mi.Point2f(0.5, 0.5), False)
+            directions[r, k] = np.array(ds.d, dtype=np.float64)
+            distances[r, k] = math.inf if kind == "directional" else float(ds.dist)
+            irradiance[r, k] = float(weights @ _rgb(spec))
+        if kind != "directional" and np.any(distances[:, k] <= 0):
+            r = int(np.flatnonzero(distances[:, k] <= 0)[0])
+            raise fail(where, f"{kind}: it sits at receiver {r} {_triple3(points[r])}, where its irradiance is "
+                              f"infinite: move the light off the surface")
+        if np.any(irradiance[:, k] < 0) or not np.all(np.isfinite(irradiance[:, k])):
+            raise fail(where, f"{kind}: its intensity must be finite and non-negative in every channel")
+        labels.append(label)
+        kinds.append(kind)
+    directions /= np.maximum(np.linalg.norm(directions, axis=-1, keepdims=True), 1e-300)
+    return DeltaLights(labels=tuple(labels), kinds=tuple(kinds), directions=directions, distances=distances,
+                       irradiance=irradiance)
+
+
+def _delta_notes(delta: DeltaLights) -> list[str]:
+    out = []
+    for k, (label, kind) in enumerate(zip(delta.labels, delta.kinds)):
+        e = delta.irradiance[:, k]
+        out.append(f"{label}: {kind} light, irradiance {e.min():.6g} to {e.max():.6g} at the receivers (facing it): "
+                   f"an exact term, with no variance, in every estimate and reference")
+    return out
+
+
+def _envmap_texels(params: dict[str, Any], fields: dict[str, str], where: str) -> np.ndarray:
+    """(H, W, 3) linear sRGB of an envmap's bitmap, from the table Mitsuba looks up: it
+    pads the bitmap with copies of its edge columns, one before (3.9) or none, and one
+    after (scenes/environment.py)."""
+    data = np.asarray(params["data"], dtype=np.float64)
+    match = re.search(r"\[(\d+),\s*(\d+)\]", fields.get("res", ""))
+    width = int(match.group(1)) if match else data.shape[1] - 2
+    if data.ndim != 3 or data.shape[2] < 3:
+        raise fail(where, f"envmap: Mitsuba's table has shape {data.shape}; warpis expects (H, W, 3) in scalar_rgb")
+    if data.shape[1] == width + 2 and np.array_equal(data[:, 0], data[:, width]) \
+            and np.array_equal(data[:, width + 1], data[:, 1]):
+        return data[:, 1:width + 1, :3]
+    if data.shape[1] == width + 1 and np.array_equal(data[:, width], data[:, 0]):
+        return data[:, :width, :3]
+    raise fail(where, f"envmap: Mitsuba's table ({data.shape[1]} columns for a bitmap {width} wide) is not laid out "
+                      f"as warpis reads it")
 
 
 def _radiance(mi: Any, emitter: Any, where: str, weights: np.ndarray) -> tuple[np.ndarray, float]:
