@@ -41,7 +41,7 @@ atexit.register(shutil.rmtree, os.environ["WARPIS_CACHE_DIR"], True)
 
 BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")  # TOML scenes
 # Mitsuba XML scenes (need the mitsuba extra; tests/test_mitsuba_scene.py and test_against_mitsuba.py)
-MITSUBA_BUNDLED = ("mitsuba-cornell-box", "mitsuba-veach-plates")
+MITSUBA_BUNDLED = ("mitsuba-cornell-box", "mitsuba-material-preview", "mitsuba-veach-plates")
 # TOML scenes whose receivers are a camera's pixels (thousands: kept out of BUNDLED's per-scene tests)
 CAMERA_BUNDLED = ("veach-plates-camera",)
 

@@ -38,6 +38,7 @@ class DeltaLights:
     directions: np.ndarray  # (R, L, 3) float64, unit: from the receiver towards the light
     distances: np.ndarray  # (R, L) float64 > 0: to the light; inf for a directional light
     irradiance: np.ndarray  # (R, L) float64 ≥ 0: E_l at the receiver on a surface facing the light
+    grey: bool = True  # the same in every colour channel
 
     def __post_init__(self) -> None:
         for name in ("directions", "distances", "irradiance"):

@@ -200,19 +200,21 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
                                                       str(device), scene)
     else:
         rx, receiver_notes, under = _receivers(side, shapes, vertices, triangles, owner, sensor, file, sidecar, scene)
-    if channel == "y" and any(s.radiance is not None and not _grey(s.radiance) for s in shapes) and \
-            any(not shapes[k].material.grey for k in under):
-        notes.append("channel y multiplies the luminance of the emission by the luminance of the BSDF: with "
-                     "coloured light on coloured receivers this differs from the luminance of Mitsuba's RGB result, "
-                     "which each of the channels r, g and b matches")
-    for s in shapes:
-        notes += s.notes
-    if environment is not None:
-        notes += environment.notes
     delta = None
     if delta_emitters:
         with session:
             delta = _delta_lights(session.mi, delta_emitters, rx.positions, file, weights)
+    coloured_light = (any(s.radiance is not None and not _grey(s.radiance) for s in shapes)
+                      or (environment is not None and not environment.grey) or (delta is not None and not delta.grey))
+    if channel == "y" and coloured_light and any(not shapes[k].material.grey for k in under):
+        notes.append("channel y multiplies the luminance of the emission by the luminance of the BSDF: with "
+                     "coloured light on coloured receivers this differs from the luminance of Mitsuba's RGB result, "
+                     "which is the same luminance of warpis's channels r, g and b (each matches Mitsuba's)")
+    for s in shapes:
+        notes += s.notes
+    if environment is not None:
+        notes += environment.notes
+    if delta is not None:
         notes += _delta_notes(delta)
     notes += receiver_notes
     name = side["name"] or (file.parent.name if file.name == "scene.xml" else file.stem)
@@ -523,7 +525,8 @@ def _one_bsdf(cls: str, fields: dict[str, str], params: dict[str, Any], where: s
         if tex is not None:
             name = _texture_name(fields["reflectance"])
             return _Material("lambert", f"diffuse reflectance from a {name!r} texture", albedo=math.nan,
-                             textures={"albedo": (tex,)}, texture_text={"albedo": fields["reflectance"]})
+                             textures={"albedo": (tex,)}, texture_text={"albedo": fields["reflectance"]},
+                             grey=False)  # not known to be grey: channel y's note then applies
         rgb = _colour(fields, params, "reflectance", where, plugin)
         albedo = float(weights @ rgb)
         return _Material("lambert", f"diffuse albedo={albedo:.6g}", albedo=albedo, grey=_grey(rgb))
@@ -565,7 +568,7 @@ def _one_bsdf(cls: str, fields: dict[str, str], params: dict[str, Any], where: s
             eta = np.where(eta == 0, NONE_ETA, eta)
         m = _Material("roughconductor", "", alpha=alpha_u, distribution=distribution,
                       sample_visible=visible, eta=eta, k=k, specular=weights * specular,
-                      grey=_grey(eta) and _grey(k) and _grey(specular), textures=textures, texture_text=texture_text)
+                      grey=_grey(eta) and _grey(k) and _grey(specular) and not textures, textures=textures, texture_text=texture_text)
         m.text = (f"roughconductor {_options_text(m)} eta={_triple(eta)} k={_triple(k)}"
                   + ("" if "specular" in textures or np.all(specular == 1) else
                      f" specular_reflectance={_triple(specular)}")
@@ -594,7 +597,7 @@ def _one_bsdf(cls: str, fields: dict[str, str], params: dict[str, Any], where: s
         weight = s_mean / (d_mean + s_mean) if d_mean + s_mean > 0 else 0.5
         m = _Material("roughplastic", "", albedo=float(weights @ diffuse), alpha=alpha, distribution=distribution,
                       sample_visible=visible, eta=np.full(3, eta), k=np.zeros(3), specular=weights * specular,
-                      specular_weight=weight, grey=_grey(diffuse) and _grey(specular), textures=textures,
+                      specular_weight=weight, grey=_grey(diffuse) and _grey(specular) and not textures, textures=textures,
                       texture_text=texture_text)
         m.text = (f"roughplastic {_options_text(m)} eta={eta:.6g}"
                   + ("" if "albedo" in textures else f" albedo={m.albedo:.6g}")
@@ -741,10 +744,12 @@ def _environment(mi: Any, scene: Any, file: Path, weights: np.ndarray) -> Enviro
         rgb = _colour(fields, params, "radiance", where, plugin)
         if np.any(rgb < 0):
             raise fail(where, f"{plugin}: radiance {rgb.tolist()} is negative in some channel")
-        texels, rotation = np.full((3, 2), float(weights @ rgb)), np.eye(3)
+        texels, rotation, grey = np.full((3, 2), float(weights @ rgb)), np.eye(3), _grey(rgb)
         text = f"constant environment, radiance {float(weights @ rgb):.6g} (linear sRGB {_triple(rgb)})"
     else:
-        texels = _envmap_texels(params, fields, where) @ weights * float(params["scale"])
+        rgb_texels = _envmap_texels(params, fields, where)
+        grey = bool(np.all(rgb_texels == rgb_texels[..., :1]))
+        texels = rgb_texels @ weights * float(params["scale"])
         m = _matrix(params["to_world"])
         rotation = m[:3, :3]
         if not np.all(np.isfinite(m)) or not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-5):
@@ -757,7 +762,7 @@ def _environment(mi: Any, scene: Any, file: Path, weights: np.ndarray) -> Enviro
     width, height = env.resolution
     note = (f"{text}: {width} × {height} texels, ∫ L dω = {env.power:.6g} over the sphere, its brightest 1% of "
             f"texels carry {100 * env.brightest_share():.3g}% of it")
-    return Environment(texels=texels, rotation=rotation, kind=plugin, label=where, notes=(note,))
+    return Environment(texels=texels, rotation=rotation, kind=plugin, label=where, notes=(note,), grey=grey)
 
 
 def _delta_lights(mi: Any, emitters: list[Any], points: np.ndarray, file: Path, weights: np.ndarray) -> DeltaLights:
@@ -769,6 +774,7 @@ def _delta_lights(mi: Any, emitters: list[Any], points: np.ndarray, file: Path, 
     directions = np.zeros((count, len(emitters), 3))
     distances = np.zeros((count, len(emitters)))
     irradiance = np.zeros((count, len(emitters)))
+    grey = True
     for k, emitter in enumerate(emitters):
         kind = _DELTA[emitter.class_name()]
         label = emitter.id() or f"{kind} #{k + 1}"
@@ -781,7 +787,9 @@ def _delta_lights(mi: Any, emitters: list[Any], points: np.ndarray, file: Path, 
             ds, spec = emitter.sample_direction(it, mi.Point2f(0.5, 0.5), False)
             directions[r, k] = np.array(ds.d, dtype=np.float64)
             distances[r, k] = math.inf if kind == "directional" else float(ds.dist)
-            irradiance[r, k] = float(weights @ _rgb(spec))
+            rgb = _rgb(spec)
+            irradiance[r, k] = float(weights @ rgb)
+            grey = grey and _grey(rgb)
         if kind != "directional" and np.any(distances[:, k] <= 0):
             r = int(np.flatnonzero(distances[:, k] <= 0)[0])
             raise fail(where, f"{kind}: it sits at receiver {r} {_triple3(points[r])}, where its irradiance is "
@@ -792,7 +800,7 @@ def _delta_lights(mi: Any, emitters: list[Any], points: np.ndarray, file: Path, 
         kinds.append(kind)
     directions /= np.maximum(np.linalg.norm(directions, axis=-1, keepdims=True), 1e-300)
     return DeltaLights(labels=tuple(labels), kinds=tuple(kinds), directions=directions, distances=distances,
-                       irradiance=irradiance)
+                       irradiance=irradiance, grey=grey)
 
 
 def _delta_notes(delta: DeltaLights) -> list[str]:
