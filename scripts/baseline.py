@@ -166,7 +166,7 @@ class _Receiver:
         n = np.asarray(rx.normals[r], dtype=np.float64)
         v = np.asarray(rx.view[r], dtype=np.float64)
         axis = 2.0 * np.dot(n, v) * n - v
-        return cls(p=rx.positions[r], slab=float(bs.scene.slab[r]), n=n, material=int(rx.material[r]),
+        return cls(p=rx.positions[r], slab=float(upload(bs.scene).slab[r]), n=n, material=int(rx.material[r]),
                    albedo=float(rx.albedo[r]), exponent=float(rx.exponent[r]),
                    lobe_axis=axis / np.linalg.norm(axis), frame=np.stack(orthonormal_frame(n)))
 

@@ -32,7 +32,8 @@ from pathlib import Path
 from warpis.kernels.engine import BLOCK, block_count, run_block_moments
 from warpis.runs import cluster
 from warpis.runs.cell import LocalRunner
-from warpis.runs.study import cell_job, demo_study, load_study, run_study
+from warpis.runs.study_file import demo_study, load_study
+from warpis.runs.study import cell_job, run_study
 
 
 def timed(fn) -> float:

@@ -16,7 +16,7 @@ The estimator is warpis's, computed over the very same data:
   variants trace rays with Embree 3 (its bundled ``libembree3.so``), on a BVH Embree builds;
 * receivers: ``scene.receivers`` positions and normals (float32), ρ = 1 for irradiance,
   albedo/π for lambert (other materials are refused), and each receiver's self-hit slab
-  δ = ``scene.slab`` (as computed by warpis);
+  δ = ``upload(scene).slab`` (as computed by warpis);
 * sampling: the emitter triangle is picked by its share of the total emitter area through
   the same float32 CDF as warpis (a binary search for cdf[k] ≤ u.x < cdf[k+1]), u.x is
   rescaled within [cdf[k], cdf[k+1]) and a point y = (1 − √u₀)a + √u₀(1 − u₁)b + √u₀u₁c
@@ -70,6 +70,7 @@ from typing import Any
 import numpy as np
 
 from warpis.errors import WarpisError
+from warpis.kernels.device import upload
 from warpis.kernels.estimators import parse_estimator
 from warpis.kernels.integrand import MATERIALS
 from warpis.scenes import Scene
@@ -292,7 +293,7 @@ class MitsubaScene:
             area_cdf=mi.Float(_area_cdf(scene.emitter_areas)), emitter_count=int(scene.emitter_count),
             total_area=float(np.float32(scene.total_emitter_area)),
             position=vec(rx.positions, mi.Point3f), normal=vec(rx.normals, mi.Vector3f),
-            slab=mi.Float(np.asarray(scene.slab, dtype=np.float32)), rho=mi.Float(rho.astype(np.float32)),
+            slab=mi.Float(np.asarray(upload(scene).slab, dtype=np.float32)), rho=mi.Float(rho.astype(np.float32)),
             load_seconds=load_seconds,
         )
 

@@ -16,7 +16,7 @@ it proves nothing either.
     python scripts/mutants.py                 # every mutant (about 15–25 minutes on 2 cores)
     python scripts/mutants.py --list          # names and bugs
     python scripts/mutants.py balance-plus-one trials-share-a-stream
-    python scripts/mutants.py --markdown      # the result table as Markdown (README, notes)
+    python scripts/mutants.py --markdown      # the result table as Markdown (docs/development.md, notes)
 
 Not part of CI: it recompiles Warp kernels for most mutants.
 """
@@ -228,9 +228,9 @@ MUTANTS: tuple[Mutant, ...] = (
     Mutant("bsdf-technique-cosine-for-plastic", "the bsdf technique's pdf at roughplastic is the cosine density",
            K + "techniques.py", "bsdf_pdf", "return plastic_pdf(scene.plastic_table, sp, w)",
            "return cosine_hemisphere_pdf(wp.dot(w, sp.n))", ("tests/test_materials.py",)),
-    # ------------------------------------------------------------------ Mitsuba scenes (scenes/mitsuba_source.py)
+    # ------------------------------------------------------------------ Mitsuba scenes (scenes/mitsuba/)
     Mutant("mitsuba-ignores-flip-normals", "analytic shapes ignore flip_normals (light from the wrong side)",
-           "warpis/scenes/mitsuba_source.py", "_geometry", "-1.0 if flipped else 1.0", "1.0",
+           "warpis/scenes/mitsuba/shapes.py", "_geometry", "-1.0 if flipped else 1.0", "1.0",
            ("tests/test_mitsuba_scene.py",)),
     # ------------------------------------------------------------------ camera receivers (scenes/camera.py)
     Mutant("camera-pixel-corner", "primary rays through pixel corners instead of centres",
@@ -267,17 +267,17 @@ MUTANTS: tuple[Mutant, ...] = (
            K + "estimators.py", "_optimal_weights", "return np.where(pdf[:, k] > 0, value, -n_g * ctx.alpha[:, k])",
            "return np.where(pdf[:, k] > 0, value, n_g * ctx.alpha[:, k])",
            ("tests/test_optimal_mis.py::test_the_theorys_psi_counts_every_sample_and_a_failed_one_as_minus_ng_alpha",)),
-    # ------------------------------------------------------------------ point sets (patterns.py, analysis/point_sets)
+    # ------------------------------------------------------------------ point sets (patterns.py, point_sets)
     Mutant("shuffle-two-rounds", "the lhs row shuffle runs 2 rounds (pair law far from uniform)", K + "patterns.py",
            "shuffle_index", "for r in range(SHUFFLE_ROUNDS):", "for r in range(2):",
            ("tests/test_point_sets.py",)),
     Mutant("lhs-form-drops-cell-term", "the Latin hypercube's variance forgets the within-cell difference D",
-           "warpis/analysis/point_sets/lhs.py", "_replica_terms", "return m * w + m / (m - 1) * (m * k - d)",
+           "warpis/point_sets/lhs.py", "_replica_terms", "return m * w + m / (m - 1) * (m * k - d)",
            "return m * w + m / (m - 1) * (m * k)", ("tests/test_lhs_lattice_variance.py",)),
     Mutant("lattice-form-drops-set-spread", "the lattice's variance forgets the spread of its sets' means",
-           "warpis/analysis/point_sets/lattice.py", "_jackknife", "value = a.mean(axis=-1) + big_d[..., 0] / (k - 1)",
+           "warpis/point_sets/lattice.py", "_jackknife", "value = a.mean(axis=-1) + big_d[..., 0] / (k - 1)",
            "value = a.mean(axis=-1)", ("tests/test_lhs_lattice_variance.py",)),
-    Mutant("net-gain-base-two", "Owen's gains use base 2 for Halton's base-3 coordinate", "warpis/analysis/point_sets/nets.py",
+    Mutant("net-gain-base-two", "Owen's gains use base 2 for Halton's base-3 coordinate", "warpis/point_sets/nets.py",
            "_gain_parts", "num = _exactly(_exactly(n, b1, 0), b2, 1)", "num = _exactly(_exactly(n, b1, 0), 2, 1)",
            ("tests/test_net_variance.py",)),
     # ------------------------------------------------------------------ random numbers (rng.py)
@@ -289,14 +289,14 @@ MUTANTS: tuple[Mutant, ...] = (
            "_eq14_printed", "stratum_integrals(c.scene, c.receiver, c.est.techniques, m) / n_g",
            "stratum_integrals(c.scene, c.receiver, c.est.techniques, m)", ("tests/test_theory.py",)),
     Mutant("block-variance-squared-mean", "exact variance subtracts the squared replica mean (biased by Var(p̄))",
-           "warpis/analysis/theory.py", "_unbiased_block_variance",
+           "warpis/analysis/quadrature.py", "_unbiased_block_variance",
            "pairs = (sp * sp - (p * p).sum(axis=-1)) / (r * (r - 1))", "pairs = (sp / r) ** 2",
            ("tests/test_theory_batched.py", "tests/test_theory.py")),
-    Mutant("interval-se-narrow", "the variance interval's se × 0.9", "warpis/analysis/stats.py", "_interval",
+    Mutant("interval-se-narrow", "the variance interval's se × 0.9", "warpis/stats.py", "_interval",
            "se = np.sqrt(np.maximum(var_s2, 0.0))", "se = 0.9 * np.sqrt(np.maximum(var_s2, 0.0))",
            ("tests/test_stats.py",)),
     Mutant("interval-normal-theory", "the variance interval assumes normal estimates (μ4 = 3σ⁴)",
-           "warpis/analysis/stats.py", "_interval", "var_s2 = (m4 - s2 * s2 * (m - 3) / (m - 1)) / m",
+           "warpis/stats.py", "_interval", "var_s2 = (m4 - s2 * s2 * (m - 3) / (m - 1)) / m",
            "var_s2 = 2 * s2 * s2 / (m - 1)", ("tests/test_stats.py",)),
     Mutant("reference-stderr-halved", "quadrature references report half their standard error",
            "warpis/analysis/reference.py", "_run", "float(row.std(ddof=1) / math.sqrt(replicas))",

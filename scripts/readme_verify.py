@@ -1,24 +1,86 @@
-"""Regenerate the README section "What the equations say and what we measure".
+"""Regenerate the verify block of docs/verify.md, or run every documented command.
 
 Runs ``warpis verify`` on every bundled scene at its default settings and writes each
-scene's per-form summary, with the exact command beside it, between the README's
-``<!-- verify:begin -->`` and ``<!-- verify:end -->`` markers.  Nothing in the section is
-typed by hand.  Takes several minutes on two cores; full outputs go to warpis-out/verify/.
+scene's per-form summary, with the exact command beside it, between the
+``<!-- verify:begin -->`` and ``<!-- verify:end -->`` markers of docs/verify.md
+("What the equations say and what we measure").  Nothing in the block is typed by hand.
+Takes several minutes on two cores; full outputs go to warpis-out/verify/.
+
+``--run`` instead runs, for real and from the repository root, every ``warpis ...``
+command of the fenced code blocks of README.md and docs/*.md (the commands that
+tests/test_docs.py only parses), and lists each that fails.  It takes as long as the
+commands do (the demo, studies, verify runs, images: an hour and more on two cores), so
+it is not part of the test suite.
 
     python scripts/readme_verify.py [--trials M] [--scenes a,b]
+    python scripts/readme_verify.py --run [--match TEXT]
+
+A command line in a fenced block counts when it starts with ``warpis `` or ``$ warpis ``;
+a trailing backslash continues it, ``#`` starts a comment, and a line whose comment holds
+``synopsis`` shows a command's shape (placeholders such as ``[--out DIR]``) and is skipped.
 """
 
 from __future__ import annotations
 
 import argparse
 import platform
+import shlex
 import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 ROOT = Path(__file__).resolve().parent.parent
 BEGIN, END = "<!-- verify:begin -->", "<!-- verify:end -->"
+VERIFY_PAGE = ROOT / "docs" / "verify.md"
+SYNOPSIS = "synopsis"  # in a command line's comment: a command's shape, not a command
+
+
+class DocCommand(NamedTuple):
+    page: str    # relative to the repository root
+    line: int    # 1-based line of the command's first line
+    text: str    # the command as written (continuations joined, comment kept)
+    argv: list   # the arguments after ``warpis``
+
+
+def doc_pages() -> list[Path]:
+    """README.md and every page of docs/."""
+    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def doc_commands(pages: list[Path] | None = None) -> list[DocCommand]:
+    """Every ``warpis ...`` command of the fenced code blocks of ``pages``."""
+    found = []
+    for page in doc_pages() if pages is None else pages:
+        lines = page.read_text().splitlines()
+        fence = False
+        i = 0
+        while i < len(lines):
+            line = lines[i].strip()
+            if line.startswith("```"):
+                fence = not fence
+                i += 1
+                continue
+            start = i
+            i += 1
+            if not fence:
+                continue
+            if line.startswith("$ "):
+                line = line[2:].lstrip()
+            if not line.startswith("warpis "):
+                continue
+            text = line
+            while text.endswith("\\") and i < len(lines):
+                text = text[:-1] + " " + lines[i].strip()
+                i += 1
+            words = shlex.split(text, comments=True)
+            comment = text.split(" #", 1)[1] if " #" in text else ""
+            if SYNOPSIS in comment:
+                continue
+            name = str(page.relative_to(ROOT)) if page.is_relative_to(ROOT) else str(page)
+            found.append(DocCommand(name, start + 1, text, words[1:]))
+    return found
 
 
 def run_scene(scene: str, trials: int | None) -> tuple[str, str]:
@@ -38,7 +100,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trials", type=int, help="trials per cell (default: verify's default)")
     parser.add_argument("--scenes", help="comma-separated bundled scenes (default: all)")
+    parser.add_argument("--run", action="store_true",
+                        help="run every warpis command of README.md and docs/*.md for real instead (slow)")
+    parser.add_argument("--match", help="with --run: only the commands whose text contains this")
     args = parser.parse_args()
+    if args.run:
+        sys.exit(run_all(args.match))
     sys.path.insert(0, str(ROOT))
     from warpis.scenes import bundled_scenes
 
@@ -49,11 +116,28 @@ def main() -> None:
         cmd, text = run_scene(scene, args.trials)
         parts += [f"`{cmd}`", "", "```", text, "```", ""]
     parts.append(END)
-    readme = ROOT / "README.md"
-    body = readme.read_text()
+    body = VERIFY_PAGE.read_text()
     head, rest = body.split(BEGIN, 1)
     _, tail = rest.split(END, 1)
-    readme.write_text(head + "\n".join(parts) + tail)
+    VERIFY_PAGE.write_text(head + "\n".join(parts) + tail)
+
+
+def run_all(match: str | None) -> int:
+    """Run every documented command for real; 1 when any fails."""
+    failed = []
+    for cmd in doc_commands():
+        if match and match not in cmd.text:
+            continue
+        print(f"{cmd.page}:{cmd.line}: warpis {shlex.join(cmd.argv)}", file=sys.stderr, flush=True)
+        start = time.perf_counter()
+        done = subprocess.run(["warpis", *cmd.argv], cwd=ROOT, capture_output=True, text=True)
+        status = "ok" if done.returncode == 0 else f"exit {done.returncode}"
+        print(f"    {status}, {time.perf_counter() - start:.0f} s", file=sys.stderr, flush=True)
+        if done.returncode:
+            failed.append((cmd, done.stderr.strip().splitlines()[-1:] or [""]))
+    for cmd, last in failed:
+        print(f"FAILED {cmd.page}:{cmd.line}: {cmd.text}\n    {last[0]}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Shared fixtures and helpers: scene files written on the fly, bundled scenes loaded once.
 
 ``write_scene(directory, meshes=..., receivers=..., material=...)`` writes mesh files and
-a scene TOML (see README.md, "Scene files") and returns the TOML's path.  Every key of a
+a scene TOML (see docs/scene-files.md) and returns the TOML's path.  Every key of a
 mesh entry goes into its ``[[mesh]]`` table verbatim, except three that say what to
 write at ``path``: ``vertices`` and ``faces`` (geometry, written in the format of the
 path's suffix), or ``content`` (bytes or text, written as is).  Values are written as
@@ -311,7 +311,7 @@ def sky_environment(height: int = 12, width: int = 24, angle: float = 0.7) -> wa
 
 
 # --------------------------------------------------------------------------- point-set forms
-# ``values`` callables for the pair forms of warpis.analysis.point_sets on closed-form ψ.
+# ``values`` callables for the pair forms of warpis.point_sets on closed-form ψ.
 
 BELOW_ONE = float(np.nextafter(np.float32(1.0), np.float32(0.0)))  # the largest float32 below 1
 
@@ -319,7 +319,7 @@ BELOW_ONE = float(np.nextafter(np.float32(1.0), np.float32(0.0)))  # the largest
 def float32_points(u: np.ndarray) -> np.ndarray:
     """The points as theory.py passes them on: within the call limit, inside [0,1)² before
     and after the cast to float32."""
-    from warpis.analysis.point_sets import MAX_POINTS_PER_CALL
+    from warpis.point_sets import MAX_POINTS_PER_CALL
 
     assert u.ndim == 2 and u.shape[1] == 2 and 0 < len(u) <= MAX_POINTS_PER_CALL
     assert (u >= 0).all() and (u <= BELOW_ONE).all()

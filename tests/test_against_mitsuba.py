@@ -10,7 +10,7 @@ receivers: the sphere's highlight and two points in the cube's penumbra on
 ``plate-ggx``; the square light's highlight, a point beside it and one away from it on
 ``plate-beckmann``; a lit point on the floor and one in the penumbra of ``plate-ggx``.
 Radiances and reflectances differ per channel and both sides read channel g, which
-warpis represents exactly (README.md, "Mitsuba scenes").
+warpis represents exactly (docs/mitsuba-scenes.md).
 
 Each receiver's F = ∫ Le(ω) ρ(ω) cos θ dω, the direct radiance reflected towards the
 camera, is computed twice:
@@ -87,7 +87,7 @@ import warpis  # noqa: E402
 from warpis.analysis.reference import reference  # noqa: E402
 from warpis.kernels.integrand import evaluate_integrand  # noqa: E402
 from warpis.kernels.techniques import direction_pdf  # noqa: E402
-from warpis.scenes.mitsuba_source import TESSELLATION_ERROR  # noqa: E402
+from warpis.scenes.mitsuba import TESSELLATION_ERROR  # noqa: E402
 
 DATA = Path(__file__).parent / "data" / "against_mitsuba"
 SCENE = DATA / "scene.xml"

@@ -5,7 +5,7 @@ distribution: per receiver of occluded-quad, the two sample means must agree wit
 combined standard errors, |x̄_w − x̄_b| ≤ 4·sqrt(se_w² + se_b²).  For normal means (M is
 large) that fails by chance with probability 2·(1 − Φ(4)) ≈ 6.3e-5 per comparison.  The
 two sample variances must agree within 4 combined fourth-moment standard errors of s²
-(``warpis.analysis.stats.variance_interval``); that interval is asymptotic, so its false-failure
+(``warpis.stats.variance_interval``); that interval is asymptotic, so its false-failure
 probability is only approximately the same 6.3e-5.  Two estimators × 6 lit receivers ×
 (mean, variance) make 24 comparisons, so by the union bound a false failure has
 probability below about 1.5e-3 (and, the seeds being fixed, every run draws the same
@@ -38,7 +38,7 @@ import pytest
 
 import warpis
 from warpis.analysis.closed_form import irradiance_closed_form
-from warpis.analysis.stats import variance_interval
+from warpis.stats import variance_interval
 from warpis.errors import WarpisError
 from warpis.kernels.engine import run_trials
 

@@ -19,11 +19,11 @@ from conftest import write_scene
 from scipy.special import ndtri
 
 import warpis
-from warpis.analysis.stats import variance_interval
+from warpis.stats import variance_interval
 from warpis.errors import WarpisError
 from warpis.kernels.estimators import parse_estimator
 from warpis.kernels.patterns import PATTERNS
-from warpis.runs import cell, study, verify
+from warpis.runs import cell, study, study_file, study_report, verify
 from warpis.runs.cell import (INSIDE_SHARE, MIN_TRIALS, RATIO_TOLERANCE, Z95, RunCache, inside, measure_cell, summarize,
                               z_score)
 
@@ -106,20 +106,20 @@ def test_holds_rule_on_constructed_rows():
     assert "exact" not in {s.form for s in summarize(_rows("eq1", [1.0], [True]))}
     # study's summary.json and verify's lines read the same verdicts
     rows = _rows("eq1", [1.05] * 10, [True] * 7 + [False] * 3)
-    assert study.form_summaries(rows)[0]["holds"] is False
+    assert study_report.form_summaries(rows)[0]["holds"] is False
     assert "FAILS" in verify.summary_lines(rows)[0]
 
 
 def test_one_trial_floor_everywhere(lamp, lamp_dir, cli):
     """MIN_TRIALS (4) is the floor of the pipeline, verify, study and estimate alike."""
-    assert MIN_TRIALS == 4 and study.MIN_TRIALS is MIN_TRIALS
+    assert MIN_TRIALS == 4 and cell.MIN_TRIALS is MIN_TRIALS
     est = parse_estimator("independent:single:light-area")
     with pytest.raises(WarpisError, match="trials must be at least 4"):
         measure_cell(lamp, [0], est, 4, 3, 0, RunCache())
     with pytest.raises(WarpisError, match="--trials must be at least 4 to give a variance interval"):
         verify.verify(lamp, estimators=[est], n_values=[4], trials=3)
     with pytest.raises(WarpisError, match="trials must be at least 4"):
-        study.study_from_dict({"name": "t", "trials": 3, "n": [4], "scenes": ["scene.toml"],
+        study_file.study_from_dict({"name": "t", "trials": 3, "n": [4], "scenes": ["scene.toml"],
                                "estimators": [est.spec]}, "t.toml", lamp_dir)
     result = cli("estimate", lamp_dir / "scene.toml", "--estimator", est.spec, "--n", "4", "--trials", "3")
     assert result.status == 2 and "--trials must be at least 4" in result.err
@@ -138,8 +138,8 @@ def test_a_measured_row_reads_the_same_in_verify_json_and_results_csv(lamp):
     est = parse_estimator("independent:balance:light-area+cosine")
     (row,) = measure_cell(lamp, [0], est, 4, TRIALS, 7, cache).rows
     assert {"eq6", "eq7-exact", "veach-bound", "exact"} <= set(row.predictions)
-    assert set(row.predictions) | set(row.reasons) == set(study.FORMS)
-    assert set(row.inside) == set(row.predictions) and set(row.z) == set(row.predictions) - set(study.BOUND_FORMS)
+    assert set(row.predictions) | set(row.reasons) == set(study_file.FORMS)
+    assert set(row.inside) == set(row.predictions) and set(row.z) == set(row.predictions) - set(study_file.BOUND_FORMS)
 
     plain = row.as_dict()
     json_row = verify.json_row(row)
@@ -187,7 +187,7 @@ def test_an_estimator_without_exact_form_gives_reasons_in_verify_and_study(lamp,
     assert not missing & (set(vrow["predictions"]) | set(vrow["inside"]) | set(vrow["z"]))
     assert vrow["variance"] == row.variance
 
-    s = study.study_from_dict({"name": "no-exact", "trials": TRIALS, "n": [4], "scenes": ["scene.toml"],
+    s = study_file.study_from_dict({"name": "no-exact", "trials": TRIALS, "n": [4], "scenes": ["scene.toml"],
                                "estimators": [spec], "outputs": []}, "no-exact.toml", lamp_dir)
     run = study.run_study(s, tmp_path / "out")
     (srow,) = run.rows

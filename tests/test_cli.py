@@ -150,7 +150,7 @@ def test_estimate_json(cli):
     statistics of the 50 trials (recomputed here from ``run_trials`` with the same seed,
     which draws the same estimates): the mean, stderr = √(s²/M), the unbiased s² and the
     95% interval s² ∓ 1.96·√((m4 − s⁴(M−3)/(M−1))/M), lo clipped at 0, m4 the plug-in
-    fourth central moment (README, "JSON that other tools read"); umbra receivers
+    fourth central moment (docs/python-api.md, "JSON that other tools read"); umbra receivers
     estimate exactly 0 with zero variance.  And each mean lies within 5 combined standard
     errors of the reference: light-area estimates are bounded (f/g ≤ L·A·cos θ·cos θ_y/r²),
     so the mean of 50 is close to normal and |z| > 5 has probability 5.7e-7 per receiver
@@ -334,7 +334,7 @@ def test_no_progress_into_a_pipe():
 
 def test_progress_on_a_terminal_unless_json_or_quiet(cli, monkeypatch):
     """With stderr a terminal, the bar is shown by default and not with --json; --quiet
-    turns it off, and wins over --progress in either order (README, "Commands")."""
+    turns it off, and wins over --progress in either order (README.md, "Commands")."""
     monkeypatch.setattr("warpis.cli._stderr_is_terminal", lambda: True)
     assert _bar(cli(*QUICK).err, "estimate", "trials")
     assert _bar(cli("reference", "occluded-quad", "--receivers", "2", "--rel-error", "0.01").err,

@@ -23,7 +23,8 @@ from warpis.kernels.engine import BLOCK  # noqa: E402
 from warpis.kernels.estimators import parse_estimator  # noqa: E402
 from warpis.runs import cluster  # noqa: E402
 from warpis.runs.cell import CellJob  # noqa: E402
-from warpis.runs.study import load_study, run_study  # noqa: E402
+from warpis.runs.study_file import load_study  # noqa: E402
+from warpis.runs.study import run_study  # noqa: E402
 from warpis.runs.verify import verify  # noqa: E402
 
 from conftest import one_error_line  # noqa: E402

@@ -13,7 +13,7 @@ import pytest
 import warp as wp
 
 import warpis
-from warpis.analysis.theory import exact_variance
+from warpis.analysis.quadrature import exact_variance
 from warpis.kernels.engine import run_trials
 
 pytestmark = pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device")

@@ -33,7 +33,7 @@ from conftest import one_error_line  # noqa: E402
 from warpis.analysis.reference import reference  # noqa: E402
 from warpis.kernels.engine import run_trials  # noqa: E402
 from warpis.scenes.delta import DeltaLights  # noqa: E402
-from warpis.scenes.mitsuba_source import load_mitsuba  # noqa: E402
+from warpis.scenes.mitsuba import load_mitsuba  # noqa: E402
 
 LIGHTS = """  <emitter type="point" id="bulb"><point name="position" x="0.5" y="1.5" z="0.2"/>
     <rgb name="intensity" value="4, 3, 2"/></emitter>

@@ -44,10 +44,10 @@ mi = pytest.importorskip("mitsuba")
 import warpis  # noqa: E402
 from conftest import one_error_line, sky_environment  # noqa: E402
 from warpis.analysis.reference import reference  # noqa: E402
-from warpis.analysis.theory import exact_variance  # noqa: E402
+from warpis.analysis.quadrature import exact_variance  # noqa: E402
 from warpis.kernels.engine import run_moments  # noqa: E402
 from warpis.kernels.integrand import evaluate_integrand  # noqa: E402
-from warpis.scenes.mitsuba_source import load_mitsuba  # noqa: E402
+from warpis.scenes.mitsuba import load_mitsuba  # noqa: E402
 
 SAMPLES = 1 << 18  # Mitsuba's emitter samples per receiver
 SEED = 1234

@@ -24,7 +24,7 @@ from conftest import BUNDLED, concat_meshes, sky_environment
 
 import warpis
 from warpis.analysis.reference import reference
-from warpis.analysis.stats import variance_interval
+from warpis.stats import variance_interval
 from warpis.kernels.engine import run_trials
 from warpis.kernels.estimators import COMBINERS, Estimator, parse_estimator
 from warpis.kernels.integrand import MATERIALS, evaluate_integrand
@@ -359,7 +359,7 @@ def _replay_optimal(scene: warpis.Scene, r: int, est: Estimator, n: int, trials:
     """The trials of ``independent:optimal[-oracle]`` at receiver r, recomputed in numpy:
     α from the pilot (its own streams, a ridge of 1% of Â's mean diagonal) or the oracle,
     then Σ α + (1/m) Σ_k Σ_i (f − α·g)/Σ g."""
-    from warpis.analysis.theory import optimal_alpha
+    from warpis.analysis.quadrature import optimal_alpha
     from warpis.kernels.estimators import PILOT_STREAM
     from warpis.kernels.rng import uniform_np
 
@@ -474,7 +474,7 @@ def test_jittered_beats_independent_widely_on_a_smooth_receiver(quad, references
     it must still exceed 2.5.  Both variances carry fourth-moment intervals and the ratio
     of the interval ends (worst case, ind.lo / jit.hi) is tested.
 
-    False-failure rate.  The true ratios (theory.exact_variance) are 66.8, 43.7 and 3.68.
+    False-failure rate.  The true ratios (quadrature.exact_variance) are 66.8, 43.7 and 3.68.
     With M = 2000 each s² has a relative se of ~3.2%, so lo/hi ≈ 0.88 × (s²_ind/s²_jit) and
     ln(s²_ind/s²_jit) has sd ≈ 0.045.  Failing needs the log ratio to fall below its truth
     by ln(30/(0.88·66.8)) = −0.67 (15 sd), ln(20/(0.88·43.7)) = −0.65 (14 sd) and

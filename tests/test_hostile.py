@@ -11,7 +11,7 @@ Two halves:
   2^32, floats outside float32's normal range, coordinates float32 cannot square,
   devices that do not exist, files that cannot be decoded, outputs that cannot be
   written) ends in exactly one ``warpis: error:`` line, exit status 2, no traceback and
-  nothing on stdout.  The README's "Hostile input" table lists the same classes.  The
+  nothing on stdout.  The table of docs/bad-input.md lists the same classes.  The
   Python API refuses the same classes (a bool or float where a count or seed is due, a
   value that is not a scene, a non-finite array) with one-line WarpisErrors naming the
   argument (``BAD_API_CALLS``).
@@ -32,7 +32,7 @@ from conftest import floor_entry, light_entry, one_error_line, write_scene
 
 import warpis
 from warpis.analysis.reference import reference
-from warpis.analysis.stats import variance_interval
+from warpis.stats import variance_interval
 from warpis.cli import _emit, _mean_z
 from warpis.errors import WarpisError
 from warpis.kernels.engine import run_moments, run_trials

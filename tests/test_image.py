@@ -24,7 +24,7 @@ from scipy import stats
 
 import warpis
 from conftest import one_error_line, write_scene
-from warpis.analysis.stats import sidak_threshold
+from warpis.stats import sidak_threshold
 from warpis.errors import WarpisError
 from warpis.kernels.engine import run_trials
 from warpis.kernels.estimators import parse_estimator

@@ -125,10 +125,10 @@ from scipy.special import stdtrit  # noqa: E402
 
 import warpis  # noqa: E402
 from warpis.analysis.reference import REFERENCE_SEED, quadrature, quadrature_estimator  # noqa: E402
-from warpis.analysis.stats import sidak_threshold  # noqa: E402
+from warpis.stats import sidak_threshold  # noqa: E402
 from warpis.kernels.camera import first_hits  # noqa: E402
 from warpis.scenes.camera import PIXEL_BACK, PIXEL_EMITTER, PIXEL_NOTHING, PIXEL_RECEIVER  # noqa: E402
-from warpis.scenes.mitsuba_source import CHANNELS, TESSELLATION_ERROR  # noqa: E402
+from warpis.scenes.mitsuba import CHANNELS, TESSELLATION_ERROR  # noqa: E402
 
 SCENE = "mitsuba-veach-plates"
 W, H = 48, 27  # the image

@@ -1,4 +1,4 @@
-"""The exact-variance forms of ``lhs`` and ``lattice`` (warpis.analysis.point_sets).
+"""The exact-variance forms of ``lhs`` and ``lattice`` (warpis.point_sets).
 
 *Against the kernel's own points.*  For each pattern at m ∈ {1, 2, 5, 16, 64, 100} the
 predicted Var(Σψ) of several closed-form integrands (smooth, a tilted half-plane edge, the
@@ -34,10 +34,10 @@ from scipy.special import ndtri
 
 from conftest import mixture, one_technique
 
-from warpis.analysis.point_sets.lattice import (lattice_generator, lattice_sum_variance, shortest_dual_sq,
+from warpis.point_sets.lattice import (lattice_generator, lattice_sum_variance, shortest_dual_sq,
                                                 union_generator)
-from warpis.analysis.point_sets.lhs import lhs_sum_variance
-from warpis.analysis.stats import sidak_threshold, variance_interval
+from warpis.point_sets.lhs import lhs_sum_variance
+from warpis.stats import sidak_threshold, variance_interval
 from warpis.kernels import patterns
 from warpis.kernels.patterns import pattern_points
 
@@ -289,7 +289,7 @@ def test_shortest_dual_vector():
 
 def test_lattice_chunks_split_shifts(monkeypatch):
     """Chunks of 37 points split shifts (m = 16, 100) mid-way: the same estimate to rounding."""
-    import warpis.analysis.point_sets.lattice as lattice
+    import warpis.point_sets.lattice as lattice
     for m in (16, 100):
         values = one_technique((smooth, edge))
         whole = predict("lattice", values, m, seed=1300)
@@ -303,7 +303,7 @@ def test_lattice_chunks_split_shifts(monkeypatch):
 
 def test_lhs_respects_the_call_limit(monkeypatch):
     """With at most 37 points per call the lhs form still holds the closed form (m = 5)."""
-    import warpis.analysis.point_sets.lhs as lhs
+    import warpis.point_sets.lhs as lhs
     monkeypatch.setattr(lhs, "MAX_POINTS_PER_CALL", 37)
     sizes = []
     values = one_technique((additive,), cast=False)

@@ -1,9 +1,9 @@
 """The bundled ``mitsuba-material-preview`` scene against Mitsuba's own ``direct`` integrator.
 
-The scene (scripts/make_material_preview.py): a procedural HDR sky with a sun (an
-``envmap``, rotated), a checkerboard-textured diffuse floor, and two glossy spheres on
-one smooth-normal mesh, a gold roughconductor (alpha 0.08) and a blue roughplastic
-(alpha 0.3).  Its 36 receivers, 12 per surface, are camera hits.
+The scene (scripts/make_material_preview.py over warpis.scenes.builders.material_preview):
+a procedural HDR sky with a sun (an ``envmap``, rotated), a checkerboard-textured diffuse
+floor, and two glossy spheres on one smooth-normal mesh, a gold roughconductor (alpha
+0.08) and a blue roughplastic (alpha 0.3).  Its 36 receivers, 12 per surface, are camera hits.
 
 At every receiver, in each of r, g, b and in the luminance y of the RGB result:
 
@@ -37,7 +37,7 @@ mi = pytest.importorskip("mitsuba")
 
 from warpis.analysis.reference import reference  # noqa: E402
 from warpis.scenes import load_scene, resolve_scene_path  # noqa: E402
-from warpis.scenes.mitsuba_source import CHANNELS  # noqa: E402
+from warpis.scenes.mitsuba import CHANNELS  # noqa: E402
 
 NAME = "mitsuba-material-preview"
 SAMPLES = 4096

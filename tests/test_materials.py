@@ -5,7 +5,7 @@ The reference is a float64 numpy Gauss–Legendre quadrature over the light's ar
 
     F(x) = ∫_light L · ρ(ω) · (n·ω) · cos θ_y / r² dA,
 
-with ρ written here from its definition (README.md, "Scene files"; docs/theory.md, "The
+with ρ written here from its definition (docs/scene-files.md; docs/theory.md, "The
 integrand at a receiver"), not taken from warpis:
 
 * ``irradiance``: ρ = 1;

@@ -1,4 +1,4 @@
-"""Tests of the Mitsuba 3 scene source (warpis/scenes/mitsuba_source.py).
+"""Tests of the Mitsuba 3 scene source (warpis/scenes/mitsuba/).
 
 Small XML scenes are written into tmp_path (two meshes live in tests/data/mitsuba/) and
 loaded both by warpis and by Mitsuba itself, which is the reference for what each
@@ -35,7 +35,7 @@ from warpis.errors import WarpisError  # noqa: E402
 from warpis.kernels.integrand import MATERIALS  # noqa: E402
 from warpis.kernels.shading import DISTRIBUTIONS  # noqa: E402
 from warpis.scenes import resolve_scene_path  # noqa: E402
-from warpis.scenes.mitsuba_source import CHANNELS, TESSELLATION_ERROR, load_mitsuba  # noqa: E402
+from warpis.scenes.mitsuba import CHANNELS, TESSELLATION_ERROR, load_mitsuba  # noqa: E402
 
 DATA = Path(__file__).parent / "data" / "mitsuba"
 Y = np.array(CHANNELS["y"])
@@ -552,15 +552,15 @@ def test_receivers_on_a_smooth_mesh_and_on_an_analytic_sphere(tmp_path):
 
 
 def test_candidate_triangles_from_the_grid_match_brute_force(monkeypatch):
-    from warpis.scenes import mitsuba_source
+    from warpis.scenes.mitsuba import surfaces
     rng = np.random.default_rng(3)
     lo = rng.uniform(-1, 1, (500, 3)) * [1, 1, 0.1]
     hi = lo + rng.uniform(0, 0.2, (500, 3)) ** 2
     hi[:3] = lo[:3] + 1.5  # a few large boxes among small ones
     points = rng.uniform(-1.2, 1.4, (300, 3)) * [1, 1, 0.1]
-    brute = set(zip(*(a.tolist() for a in mitsuba_source._box_pairs(points, lo, hi))))
-    monkeypatch.setattr(mitsuba_source, "_BRUTE_FORCE", 0)
-    grid = set(zip(*(a.tolist() for a in mitsuba_source._box_pairs(points, lo, hi))))
+    brute = set(zip(*(a.tolist() for a in surfaces._box_pairs(points, lo, hi))))
+    monkeypatch.setattr(surfaces, "_BRUTE_FORCE", 0)
+    grid = set(zip(*(a.tolist() for a in surfaces._box_pairs(points, lo, hi))))
     assert grid == brute and len(brute) > 50
 
 
@@ -685,7 +685,7 @@ def test_missing_receivers_file(scene_path):
     path = scene_path(receivers=None)
     with pytest.raises(WarpisError) as excinfo:
         load_mitsuba(path)
-    one_line(excinfo, path, "scene.receivers.toml does not exist", "[[receivers]]", 'README.md, "Mitsuba scenes"')
+    one_line(excinfo, path, "scene.receivers.toml does not exist", "[[receivers]]", "docs/mitsuba-scenes.md")
     with pytest.raises(WarpisError) as excinfo:
         load_mitsuba(path, receivers=path.parent / "nope.toml")
     one_line(excinfo, path, "nope.toml does not exist")

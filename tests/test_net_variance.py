@@ -1,4 +1,4 @@
-"""The exact-variance forms of ``sobol`` and ``halton`` (warpis.analysis.point_sets.nets).
+"""The exact-variance forms of ``sobol`` and ``halton`` (warpis.point_sets.nets).
 
 *The pair classes.*  The counts N(a, b) of pairs whose unscrambled coordinates share ≥ a
 and ≥ b leading digits equal those read off the kernel's own scrambled points (nested
@@ -42,10 +42,10 @@ from scipy.special import ndtri
 
 from conftest import mixture, one_technique
 
-from warpis.analysis.point_sets import MAX_POINTS_PER_CALL
-from warpis.analysis.point_sets.nets import (gains, halton_sum_variance, pair_counts,
+from warpis.point_sets import MAX_POINTS_PER_CALL
+from warpis.point_sets.nets import (gains, halton_sum_variance, pair_counts,
                                               sobol_sum_variance)
-from warpis.analysis.stats import sidak_threshold, variance_interval
+from warpis.stats import sidak_threshold, variance_interval
 from warpis.kernels.patterns import pattern_points
 
 FORMS = {"sobol": sobol_sum_variance, "halton": halton_sum_variance}

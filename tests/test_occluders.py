@@ -1,4 +1,4 @@
-"""Shapes whose BSDF warpis cannot shade, as occluders (warpis/scenes/mitsuba_source.py).
+"""Shapes whose BSDF warpis cannot shade, as occluders (warpis/scenes/mitsuba/materials.py).
 
 Mitsuba's ``direct`` integrator traces its shadow rays with ``scene.ray_test``, which
 reads no BSDF: a glass, a conductor, a ``null`` BSDF and an alpha ``mask`` of any opacity
@@ -44,7 +44,7 @@ from warpis.analysis.closed_form import triangle_irradiance  # noqa: E402
 from warpis.analysis.reference import reference  # noqa: E402
 from warpis.errors import WarpisError  # noqa: E402
 from warpis.scenes.camera import MASK_WORDS, PIXEL_UNSHADED  # noqa: E402
-from warpis.scenes.mitsuba_source import load_mitsuba  # noqa: E402
+from warpis.scenes.mitsuba import load_mitsuba  # noqa: E402
 
 ALBEDO, LE = 0.5, 10.0
 UMBRA = [(0.0, 0.0), (0.08, 0.05)]

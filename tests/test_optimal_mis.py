@@ -31,8 +31,9 @@ import pytest
 from conftest import dome_scene, one_error_line
 
 import warpis
-from warpis.analysis.stats import variance_interval
-from warpis.analysis.theory import exact_variance, optimal_alpha, predictions
+from warpis.stats import variance_interval
+from warpis.analysis.quadrature import exact_variance, optimal_alpha
+from warpis.analysis.theory import predictions
 from warpis.kernels.engine import pilot_alphas, run_trials
 
 L = 2.0
@@ -104,7 +105,7 @@ def test_the_theorys_psi_counts_every_sample_and_a_failed_one_as_minus_ng_alpha(
     """The numpy twin the exact variance uses (ψ_k = N_g (f − α·g)/Σ g, −N_g α_k where the
     sample failed), on hand-made samples: one with f > 0, one occluded (f = 0: still
     −N_g α·g/Σ g), one failed (every pdf 0)."""
-    from warpis.analysis.theory import weighted_values
+    from warpis.analysis.quadrature import weighted_values
     from warpis.vocabulary import WeightContext
 
     f = np.array([0.5, 0.0, 0.0])

@@ -22,7 +22,7 @@ from test_study import read_csv, without_seconds, write_study
 
 from warpis import plots
 from warpis.runs import outdir
-from warpis.runs.study import HEADER
+from warpis.runs.study_file import HEADER
 
 ESTIMATORS = ["independent:single:light-area", "jittered:single:cosine"]
 VERIFY = ["verify", "occluded-quad", "--estimators", ESTIMATORS[0], "--n", "4", "--trials", "8",

@@ -34,7 +34,7 @@ import pytest
 from scipy.stats import chi2
 
 import warpis
-from warpis.analysis.stats import sidak_threshold
+from warpis.stats import sidak_threshold
 from warpis.kernels.patterns import PATTERNS, pattern_points
 from warpis.vocabulary import grid_shape
 
@@ -132,7 +132,7 @@ def test_sobol_is_a_net_at_powers_of_two(k):
 
 
 def test_sobol_prefixes_that_are_not_powers_of_two_are_not_nets_but_stay_uniform():
-    """At m = 12 no elementary-interval property is promised (README): the points are the
+    """At m = 12 no elementary-interval property is promised (docs/estimators.md): the points are the
     first 12 of a scrambled sequence, so every point is still uniform (tested above)."""
     u = pattern_points("sobol", 16, 8, seed=5)
     first12 = pattern_points("sobol", 12, 8, seed=5)

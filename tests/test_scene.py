@@ -8,7 +8,7 @@ Four parts:
 * bad input: each gives a :class:`WarpisError` with a one-line message naming the file
   and the problem, and through the command line exit status 2 with one
   ``warpis: error:`` line on stderr and nothing on stdout;
-* ray casting through ``scene.data.mesh`` (``wp.mesh_query_ray``) against a brute-force
+* ray casting through ``upload(scene).data.mesh`` (``wp.mesh_query_ray``) against a brute-force
   float64 Möller–Trumbore first hit over every triangle, on rays from each receiver's
   shading point to the emitters;
 * scenes as plain data: ``Scene.from_arrays`` against the same scene file, its one-line
@@ -33,7 +33,7 @@ from conftest import BUNDLED, CAMERA_BUNDLED, MITSUBA_BUNDLED, floor_entry, ligh
 
 import warpis
 from warpis.errors import WarpisError
-from warpis.kernels.device import SELF_HIT_SLAB, SceneData, clear_device_cache, device_cache_keys
+from warpis.kernels.device import SELF_HIT_SLAB, SceneData, clear_device_cache, device_cache_keys, upload
 from warpis.kernels.integrand import MATERIALS, incident_radiance
 from warpis.scenes import load_scene
 
@@ -109,7 +109,7 @@ def test_emitter_cdfs(bundled_scene):
     areas = s.emitter_areas
     power = areas * s.emitter_radiance
     for name, weights in (("area_cdf", areas), ("power_cdf", power)):
-        cdf = getattr(s.data, name).numpy().astype(np.float64)
+        cdf = getattr(upload(s).data, name).numpy().astype(np.float64)
         assert cdf.shape == (s.emitter_count + 1,), name
         assert cdf[0] == 0.0 and cdf[-1] == 1.0, name
         assert np.all(np.diff(cdf) >= 0.0), name
@@ -118,10 +118,10 @@ def test_emitter_cdfs(bundled_scene):
 
 
 def test_warp_data_mirrors_numpy(bundled_scene):
-    """scene.data holds the same geometry, emission and emitter tables as the numpy
+    """upload(scene).data holds the same geometry, emission and emitter tables as the numpy
     scene (to float32), and scene.receiver_data the same receivers."""
     s = bundled_scene
-    d = s.data
+    d = upload(s).data
     np.testing.assert_array_equal(d.points.numpy(), s.vertices.astype(np.float32))
     np.testing.assert_array_equal(d.indices.numpy(), s.triangles.reshape(-1))
     np.testing.assert_array_equal(d.tri_emission.numpy(), s.emission.astype(np.float32))
@@ -131,7 +131,7 @@ def test_warp_data_mirrors_numpy(bundled_scene):
     assert d.emitter_count == s.emitter_count
     np.testing.assert_allclose(d.total_area, s.total_emitter_area, rtol=1e-6)
     np.testing.assert_allclose(d.total_power, s.total_power, rtol=1e-6)
-    r = s.receiver_data
+    r = upload(s).receiver_data
     np.testing.assert_allclose(r.position.numpy(), s.receivers.positions, atol=1e-6)
     np.testing.assert_allclose(r.normal.numpy(), s.receivers.normals, atol=1e-6)
     np.testing.assert_array_equal(r.material.numpy(), s.receivers.material)
@@ -157,8 +157,8 @@ def test_self_hit_slab_follows_the_coordinates_around_each_receiver(bundled_scen
         distance = np.linalg.norm(trimesh.triangles.closest_point(tris, np.tile(x, (len(tris), 1))) - x, axis=1)
         touching = ~own_plane & (distance <= SELF_HIT_SLAB * m)
         scale = max(np.abs(x).max(), m[touching].max() if touching.any() else 0.0)
-        np.testing.assert_allclose(s.slab[r], SELF_HIT_SLAB * scale, rtol=1e-6, err_msg=f"{s.name} receiver {r}")
-    np.testing.assert_array_equal(s.receiver_data.slab.numpy(), s.slab.astype(np.float32))
+        np.testing.assert_allclose(upload(s).slab[r], SELF_HIT_SLAB * scale, rtol=1e-6, err_msg=f"{s.name} receiver {r}")
+    np.testing.assert_array_equal(upload(s).receiver_data.slab.numpy(), upload(s).slab.astype(np.float32))
 
 
 def test_bundled_receivers_and_materials(bundled_scene):
@@ -245,7 +245,7 @@ def test_transform(case, tmp_path):
     s = load_scene(path)
     corners = s.triangle_vertices(np.flatnonzero(s.triangle_mesh == 0))
     np.testing.assert_allclose(corners[0], expected, atol=1e-12)
-    warp_points = s.data.points.numpy()[s.data.indices.numpy()[:3]]
+    warp_points = upload(s).data.points.numpy()[upload(s).data.indices.numpy()[:3]]
     np.testing.assert_allclose(warp_points, expected, atol=1e-6)
 
 
@@ -288,7 +288,7 @@ def test_receiver_groups_with_materials(tmp_path):
     np.testing.assert_allclose(rx.normals[:2], [[0, 0, 1], [0, math.sqrt(0.5), math.sqrt(0.5)]], atol=1e-12)
     np.testing.assert_allclose(rx.positions, [[0, 0, 0], [0.5, 0, 0], [-0.5, 0, 0], [0, 0.5, 0]])
     assert rx.grid_shape is None
-    np.testing.assert_array_equal(s.receiver_data.material.numpy(), rx.material)
+    np.testing.assert_array_equal(upload(s).receiver_data.material.numpy(), rx.material)
 
 
 def test_grid_receivers(tmp_path):
@@ -539,7 +539,7 @@ def warp_cast(scene: warpis.Scene, origins: np.ndarray, dirs: np.ndarray):
     args = [wp.array(origins.astype(np.float32), dtype=wp.vec3), wp.array(dirs.astype(np.float32), dtype=wp.vec3)]
     out = [wp.zeros(k, dtype=wp.int32), wp.zeros(k, dtype=wp.float32), wp.zeros(k, dtype=wp.float32),
            wp.zeros(k, dtype=wp.float32)]
-    wp.launch(_cast_kernel, dim=k, inputs=[scene.data, *args, *out], device=scene.device)
+    wp.launch(_cast_kernel, dim=k, inputs=[upload(scene).data, *args, *out], device=scene.device)
     return tuple(a.numpy() for a in out)
 
 
@@ -726,7 +726,8 @@ def test_warp_ray_cast_matches_brute_force(bundled_scene):
 
 
 # Receiver labels w.r.t. the brightest emitter mesh (its [[mesh]] index), from the
-# visibility table of scripts/make_scenes.py: fully lit, or in the umbra of the occluder.
+# visibility table scripts/make_scenes.py prints (warpis.scenes.builders.mesh_scenes): fully lit,
+# or in the umbra of the occluder.
 SHADOWS = {
     "occluded-quad": {"light": 1, "occluder": 2, "lit": [0, 7], "umbra": [3, 4]},
     "two-lights": {"light": 1, "occluder": 3, "lit": [0, 1, 2, 7], "umbra": [4, 5]},
@@ -912,7 +913,7 @@ def test_digest_changes_with_every_result_array(tmp_path):
 def test_digest_and_cell_key_survive_moving_the_file(tmp_path):
     """A scene file copied elsewhere under another name (meshes beside it) has the same
     digest, and a study of it the same cell keys (name given in the file)."""
-    from warpis.runs.study import scene_digest, study_from_dict
+    from warpis.runs.study_file import scene_digest, study_from_dict
 
     first = _toml_twin(tmp_path / "a")
     second = _toml_twin(tmp_path / "elsewhere" / "b", filename="renamed.toml")
@@ -967,11 +968,11 @@ def test_device_cache_builds_once_per_digest_and_device(tmp_path, monkeypatch):
     scenes = [load_scene(path), load_scene(path), warpis.Scene.from_arrays(**_arrays())]
     scenes.append(pickle.loads(pickle.dumps(scenes[0])))
     tables = {id(light_table(s)) for s in scenes}
-    assert all(s.data.mesh == scenes[0].data.mesh for s in scenes) and len(tables) == 1
-    np.testing.assert_array_equal(scenes[3].slab, scenes[0].slab)
+    assert all(upload(s).data.mesh == upload(scenes[0]).data.mesh for s in scenes) and len(tables) == 1
+    np.testing.assert_array_equal(upload(scenes[3]).slab, upload(scenes[0]).slab)
     assert builds == ["cpu"]
     other = warpis.Scene.from_arrays(**_arrays(emission=[0.0, 0.0, 10.0, 20.0]))
-    assert other.data.mesh != scenes[0].data.mesh and builds == ["cpu", "cpu"]
+    assert upload(other).data.mesh != upload(scenes[0]).data.mesh and builds == ["cpu", "cpu"]
     allowed = {f.name for f in fields(warpis.Scene)} | {"digest", "emitters", "emitter_areas"}
     for s in scenes:
         assert set(vars(s)) <= allowed, set(vars(s)) - allowed
@@ -1032,12 +1033,12 @@ def test_from_arrays_refuses_a_device_that_does_not_exist():
         warpis.Scene.from_arrays(**_arrays(device="tpu"))
 
 
-def test_readme_from_arrays_example_runs():
-    """The README's from-arrays example (between its markers) runs as written."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    code = readme.split("<!-- from-arrays:begin -->\n```python\n", 1)[1].split("```", 1)[0]
+def test_docs_from_arrays_example_runs():
+    """The from-arrays example of docs/scene-files.md (between its markers) runs as written."""
+    page = (Path(__file__).resolve().parents[1] / "docs" / "scene-files.md").read_text()
+    code = page.split("<!-- from-arrays:begin -->\n```python\n", 1)[1].split("```", 1)[0]
     namespace: dict = {}
-    exec(compile(code, "README.md", "exec"), namespace)
+    exec(compile(code, "docs/scene-files.md", "exec"), namespace)
     scene = namespace["scene"]
     assert scene.emitter_count == 2 and len(scene.receivers) == 2 and namespace["x"].shape == (2, 1000)
 
@@ -1082,3 +1083,15 @@ def test_from_arrays_refuses_microfacet_values_outside_their_domain():
         with pytest.raises(WarpisError) as err:
             warpis.Scene.from_arrays(**_arrays(**({"material": "roughconductor", "view": [0.0, 0.0, 1.0]} | changes)))
         assert needle in str(err.value) and "\n" not in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("generator", ["mesh_scenes", "mitsuba_scenes"])
+def test_the_committed_scenes_are_their_generators(generator, capsys):
+    """``scripts/make_scenes.py --check`` and ``scripts/make_mitsuba_scenes.py --check`` in
+    process: a fresh generation by warpis.scenes.builders writes the files committed under
+    meshes/ byte for byte (writing needs neither Mitsuba nor a ray caster)."""
+    import importlib
+
+    module = importlib.import_module(f"warpis.scenes.builders.{generator}")
+    status = module.check(Path(__file__).resolve().parents[1] / "meshes")
+    assert status == 0, capsys.readouterr().out

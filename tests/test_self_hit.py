@@ -54,7 +54,7 @@ def test_a_floor_a_million_times_larger_keeps_the_light(tmp_path):
     (0.5235598, 1.1885848), and a slab set by the receivers' own coordinates."""
     small, huge = _huge_floor(tmp_path, 1.0), _huge_floor(tmp_path, 1e6)
     np.testing.assert_allclose([r.value for r in reference(huge)], [0.5235598396, 1.1885848], rtol=1e-6)
-    assert np.all(huge.slab <= SELF_HIT_SLAB * 1.5)  # was 2^-16 × 3e6 ≈ 46
+    assert np.all(upload(huge).slab <= SELF_HIT_SLAB * 1.5)  # was 2^-16 × 3e6 ≈ 46
     for estimator in ESTIMATORS:
         mean, z = _within(huge, estimator, 16, 2000, seed=7)
         assert np.all(np.abs(z) < Z_LIMIT), (estimator, mean, z)
@@ -154,7 +154,7 @@ def _cast(scene: warpis.Scene, bvh, count: int, seed: int) -> tuple[np.ndarray, 
     face, blocked = wp.zeros(count, dtype=wp.int32), wp.zeros(count, dtype=wp.int32)
     wp.launch(_queries, dim=count, inputs=[bvh, up.mesh.id, wp.array(x.astype(np.float32), dtype=wp.vec3),
                                            wp.vec3(*n.astype(np.float32)), wp.array(d.astype(np.float32), dtype=wp.vec3),
-                                           float(scene.slab.max()), face, blocked])
+                                           float(upload(scene).slab.max()), face, blocked])
     return face.numpy(), blocked.numpy()
 
 

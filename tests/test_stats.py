@@ -1,4 +1,4 @@
-"""Tests of warpis.analysis.stats: variance intervals (accuracy and coverage), z-scores, slope fits.
+"""Tests of warpis.stats: variance intervals (accuracy and coverage), z-scores, slope fits.
 
 Every random test uses a fixed seed, so its outcome is deterministic; the stated
 false-failure probability is the chance that a correct implementation fails the same
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom, chi2
 
-from warpis.analysis.stats import SlopeFit, VarianceEstimate, fit_slope, sidak_threshold, variance_interval, zscore
+from warpis.stats import SlopeFit, VarianceEstimate, fit_slope, sidak_threshold, variance_interval, zscore
 from warpis.errors import WarpisError
 
 # ---------------------------------------------------------------------------------------

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from warpis import limits
-from warpis.analysis.stats import SampleMoments, variance_interval
+from warpis.stats import SampleMoments, variance_interval
 from warpis.errors import WarpisError
 from warpis.kernels.engine import BLOCK, _BlockReducer, default_threads, run_moments, run_trials
 from warpis.scenes import load_scene

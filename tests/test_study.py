@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 from conftest import write_scene
 
-from warpis.runs.study import HEADER, demo_study, load_study
+from warpis.runs.study_file import HEADER, demo_study, load_study
 
 STUDIES = Path(__file__).resolve().parents[1] / "scripts" / "studies"
 

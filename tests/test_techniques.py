@@ -67,9 +67,10 @@ from test_light_pdf import ray_crossings, triangle_solid_angles
 from scipy.stats import chi2
 
 from warpis import Scene
-from warpis.analysis.stats import sidak_threshold
+from warpis.stats import sidak_threshold
 from warpis.kernels.engine import run_trials
 from warpis.kernels.integrand import evaluate_integrand
+from warpis.kernels.device import upload
 from warpis.kernels.techniques import TECHNIQUES, direction_pdf, light_table, sample_directions
 from warpis.kernels.warps import square_to_spherical_triangle
 from warpis.scenes import load_scene
@@ -792,7 +793,7 @@ def test_light_area_quadrants_map_to_disjoint_halves(scenes):
     rescaled to a full [0, 1), and u.y < ½ gives the half next to the triangle's second
     corner.  The four images are disjoint, and together they cover the light uniformly."""
     scene, r = scenes["occluded-quad"], 0
-    assert np.allclose(scene.data.area_cdf.numpy(), [0.0, 0.5, 1.0])
+    assert np.allclose(upload(scene).data.area_cdf.numpy(), [0.0, 0.5, 1.0])
     tris = scene.triangle_vertices(scene.emitters)
     m = 200
     g = (np.arange(m) + 0.5) / m

@@ -1,4 +1,4 @@
-"""Textured BSDF parameters on Mitsuba receivers (warpis/scenes/mitsuba_source.py).
+"""Textured BSDF parameters on Mitsuba receivers (warpis/scenes/mitsuba/materials.py, receivers.py).
 
 A texture on a receiver's diffuse ``reflectance``, roughplastic ``diffuse_reflectance``
 or ``specular_reflectance``, or roughconductor ``specular_reflectance`` or ``alpha`` is
@@ -42,7 +42,7 @@ from warpis.analysis.reference import reference  # noqa: E402
 from warpis.errors import WarpisError  # noqa: E402
 from warpis.kernels.integrand import evaluate_integrand  # noqa: E402
 from warpis.kernels.techniques import direction_pdf  # noqa: E402
-from warpis.scenes.mitsuba_source import CHANNELS, load_mitsuba  # noqa: E402
+from warpis.scenes.mitsuba import CHANNELS, load_mitsuba  # noqa: E402
 
 REL_ERROR = 2e-4
 Z = 4.5

@@ -9,7 +9,7 @@ Statistical thresholds (each test's docstring or comments give its own; summary 
   z* = Φ⁻¹(1 − α/(2K)) over their K cells with α = 1e-4, so a correct formula fails each
   with probability below 1e-4 (normal approximation of s² at M = 4000).
 * Predictions against closed forms (``_close``): the predictions are deterministic
-  (theory.SEED) quadratures whose stated stderr comes from 8 replicas, so the error over
+  (quadrature.SEED) quadratures whose stated stderr comes from 8 replicas, so the error over
   its stderr is ~t(7).  The tolerance is 8 stderr or a relative floor, whichever is larger;
   P(|t7| > 8) = 9.1e-5 per comparison, ≤ 1.2e-3 for the 13 of the hand-derived test
   under another seed.
@@ -29,13 +29,13 @@ from scipy.stats import norm
 from conftest import dome_scene
 
 import warpis
-from warpis.analysis.stats import variance_interval
-from warpis.analysis.theory import (FORMS, exact_form_problem, exact_variance, moments, predictions,
-                                   stratum_integrals)
+from warpis.stats import variance_interval
+from warpis.analysis.quadrature import exact_form_problem, exact_variance, moments, stratum_integrals
+from warpis.analysis.theory import FORMS, predictions
 from warpis.kernels.engine import run_trials
 from warpis.kernels.estimators import COMBINERS, Estimator
 from warpis.kernels.patterns import PATTERNS
-from warpis.runs import study
+from warpis.runs import study_report
 from warpis.runs.verify import default_estimators
 from warpis.vocabulary import Combiner, Pattern
 
@@ -179,8 +179,8 @@ def test_an_entry_registered_without_theory_gets_reasons_not_errors(quad, monkey
     assert "applies only to" in p.reasons["eq7-exact"]
     with pytest.raises(warpis.WarpisError, match="no block decomposition"):
         exact_variance(quad, 2, "fake:single:cosine", 8)
-    assert study.expected_text(Estimator("fake", "single", ("cosine",))) == "not stated"
-    assert study.expected_slope(Estimator("fake", "mixture", ("light-area", "cosine")))["smooth"] == -1.0
+    assert study_report.expected_text(Estimator("fake", "single", ("cosine",))) == "not stated"
+    assert study_report.expected_slope(Estimator("fake", "mixture", ("light-area", "cosine")))["smooth"] == -1.0
     # verify's defaults take a combiner without weights (its forms then say why) but leave a
     # pattern without blocks to studies: it has no exact form to be held against.
     specs = {e.spec for e in default_estimators(("light-area", "cosine"))}
@@ -209,7 +209,7 @@ def test_printed_stratified_forms_miss_by_large_factors(quad):
     m·g_k): at N = 256 on a penumbra receiver they are off by more than a factor of 2.
 
     A coarse check that the printed forms are far from the truth on a real scene; their
-    values are pinned on the dome below.  Deterministic (theory.SEED), not a test of
+    values are pinned on the dome below.  Deterministic (quadrature.SEED), not a test of
     chance: the ratios are 0.013 (eq10) and 0.12 (eq14), far outside [0.5, 2] and far
     beyond the ~1% quadrature error of either form."""
     p10 = predictions(quad, 2, "jittered:single:cosine", 256)
@@ -344,7 +344,7 @@ def test_dome_closed_forms_are_self_consistent():
 
 def test_printed_forms_and_veachs_bound_are_pinned_on_the_dome(dome):
     """eq10-printed, eq14-printed, veach-bound (and power-exact, which the bound adds to)
-    against the closed forms above.  All are deterministic (theory.SEED), so the
+    against the closed forms above.  All are deterministic (quadrature.SEED), so the
     tolerances are accuracy statements, not tests of chance:
 
     * eq10-printed (jittered uniform, N = 4 and 16) and veach-bound (independent and
@@ -352,7 +352,7 @@ def test_printed_forms_and_veachs_bound_are_pinned_on_the_dome(dome):
     * power-exact: within 1e-3 relative or 6 of its own jackknife stderr, whichever is
       larger (its value carries a quadrature error; the error over a jackknife stderr
       from 8 replicas is ~t(7), which exceeds 6 with probability 5.4e-4 — 1.1e-3 for the
-      two comparisons under another theory.SEED; measured −2.1 and −0.6 se);
+      two comparisons under another quadrature.SEED; measured −2.1 and −0.6 se);
     * eq14-printed: its J_ik come from 8 × 8 jittered points per cell in a single replica
       with no error estimate (docs/theory.md, "Reference moments"), which on this dome is
       ~1% per J_ik and moves the form by ~0.9% at N = 16 and ~0.3% at N = 64 — so it is
@@ -386,8 +386,8 @@ def test_printed_forms_and_veachs_bound_are_pinned_on_the_dome(dome):
 
 
 def test_verify_writes_the_documented_json(quad, tmp_path):
-    """`warpis verify --out DIR` writes verify.json (schema: README.md, "JSON that other tools
-    read"), verify.md and figures."""
+    """`warpis verify --out DIR` writes verify.json (schema: docs/python-api.md, "JSON that other
+    tools read"), verify.md and figures."""
     from warpis.cli import main
 
     status = main(["verify", "occluded-quad", "--receivers", "0,2", "--estimators",

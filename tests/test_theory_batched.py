@@ -24,8 +24,8 @@ import pytest
 from scipy.stats import norm, t
 
 import warpis
-from warpis.analysis import theory
-from warpis.analysis.theory import MIN_POINTS, REPLICAS, SEED, Variances, exact_variance, exact_variances
+from warpis.analysis import quadrature
+from warpis.analysis.quadrature import MIN_POINTS, REPLICAS, SEED, Variances, exact_variance, exact_variances
 from warpis.kernels.engine import run_moments
 
 N = 16
@@ -93,7 +93,7 @@ def test_a_receivers_values_do_not_depend_on_threads_chunks_or_the_other_receive
     assert calls[-1][:2] == (16, 16) and all(c[2] == threading.get_ident() for c in calls)
     assert [c[0] for c in calls] == sorted(c[0] for c in calls)
     runs = [(everyone, 2), (everyone[::-1], 2), ([13, 2, 7], 1), ([9], 2)]
-    monkeypatch.setattr(theory, "CHUNK_BYTES", 1)  # one receiver per chunk
+    monkeypatch.setattr(quadrature, "CHUNK_BYTES", 1)  # one receiver per chunk
     chunked = [exact_variances(plates, rows, spec, N, points=512, threads=threads) for rows, threads in runs]
     monkeypatch.undo()
     runs.append((everyone[::-1], 2))

@@ -31,8 +31,9 @@ from test_techniques import BITE_P, CHI2_RUNS, FAMILY_ALPHA, SAMPLES
 
 import warpis
 from warpis.analysis.reference import reference
-from warpis.analysis.stats import sidak_threshold, variance_interval
-from warpis.analysis.theory import _evaluate_kernel, _evaluate_kernel_for, predictions
+from warpis.stats import sidak_threshold, variance_interval
+from warpis.analysis.quadrature import _evaluate_kernel, _evaluate_kernel_for
+from warpis.analysis.theory import predictions
 from warpis.kernels import estimators, techniques
 from warpis.kernels.engine import run_trials
 from warpis.kernels.integrand import ShadingPoint

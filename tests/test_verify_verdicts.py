@@ -1,10 +1,10 @@
 """`warpis verify`'s verdicts, recomputed from the numbers of its own verify.json rows.
 
-README.md ("What the equations say and what we measure", "JSON that other tools read"):
+docs/verify.md and docs/python-api.md ("JSON that other tools read"):
 an equation is *inside* a cell when |s² − V| ≤ 1.96·√(se(s²)² + se(V)²), with se(V) =
 prediction_rel_error·|V|; a bound (eq17, eq20, veach-bound) when lo ≤ V (an infinite bound,
 written null, always is); the interval is [max(0, s² − 1.96·se(s²)), s² + 1.96·se(s²)].
-Here the quantile is scipy's Φ⁻¹(0.975), the set of bounds is README's, and every verdict
+Here the quantile is scipy's Φ⁻¹(0.975), the set of bounds is docs/verify.md's, and every verdict
 of every row is recomputed from the row's own numbers, so the test holds verify to its
 documented rule rather than to itself.
 
@@ -27,7 +27,7 @@ import warpis
 from warpis.runs.verify import default_estimators, verify
 
 Z = float(norm.ppf(0.975))  # 1.959963984540054
-BOUNDS = {"eq17", "eq20", "veach-bound"}  # README: the forms that are upper bounds
+BOUNDS = {"eq17", "eq20", "veach-bound"}  # docs/verify.md: the forms that are upper bounds
 SEED, TRIALS, N_VALUES, RECEIVERS = 0, 400, (4, 16), (0, 2)
 MIS = "independent:balance:light-area+cosine"
 
@@ -42,7 +42,7 @@ def verify_json(tmp_path_factory) -> dict:
 
 
 def _recomputed(row: dict, form: str) -> tuple[bool, float | None]:
-    """(inside, z) from the row's own numbers, by README's rule."""
+    """(inside, z) from the row's own numbers, by docs/verify.md's rule."""
     value = row["predictions"][form]
     s2, lo = row["variance"], row["variance_ci"][0]
     if form in BOUNDS:
@@ -60,7 +60,7 @@ def test_every_verdict_of_verify_json_follows_the_documented_rule(verify_json):
     for equations (and ``z`` equals (s² − V)/√(se² + se_V²)), lo ≤ V for bounds; the
     interval is s² ∓ 1.96·se(s²) with lo clipped at 0.  The run contains forms on both
     sides of 1.96 *and* forms with 1.96 < |z| ≤ 3 × 1.96, so a band any wider (or
-    narrower) than README's changes some verdict and fails here."""
+    narrower) than docs/verify.md's changes some verdict and fails here."""
     rows = verify_json["rows"]
     assert (verify_json["seed"], verify_json["trials"]) == (SEED, TRIALS)
     assert len(rows) == len(RECEIVERS) * len(N_VALUES) * len({r["estimator"] for r in rows})

@@ -20,7 +20,7 @@ from warpis.kernels.estimators import COMBINERS, Estimator, KernelArgs, estimato
 from warpis.kernels.integrand import MATERIALS
 from warpis.kernels.patterns import PATTERNS
 from warpis.kernels.techniques import TECHNIQUES
-from warpis.runs import study
+from warpis.runs import study_file, study_report
 from warpis.runs.verify import default_estimators
 from warpis.vocabulary import IID_SLOPE, Pattern, Registry, expected_slope, grid_shape
 
@@ -123,17 +123,17 @@ def test_every_pattern_and_combiner_checks_n_from_its_entries(pattern, combiner)
 
 def test_expected_slopes_come_from_the_registry():
     """Stratifying patterns expect −2 (smooth) / −1.5 (edges) unless the combiner picks its
-    technique at random per sample; the others −1; study.expected_slope reports the same."""
+    technique at random per sample; the others −1; study_report.expected_slope reports the same."""
     for pattern in PATTERNS.values():
         for combiner in COMBINERS.values():
             est = Estimator(pattern.name, combiner.name, ("light-area", "cosine") if combiner.several
                             else ("cosine",))
             slope = expected_slope(pattern, combiner)
             assert slope == (IID_SLOPE if combiner.random_pick else pattern.slope)
-            assert study.expected_slope(est) == (None if slope is None else slope.as_dict())
-    assert study.expected_slope(parse_estimator("jittered:balance:light-area+cosine")) == {
+            assert study_report.expected_slope(est) == (None if slope is None else slope.as_dict())
+    assert study_report.expected_slope(parse_estimator("jittered:balance:light-area+cosine")) == {
         "smooth": -2.0, "discontinuous": -1.5}
-    assert study.expected_slope(parse_estimator("jittered:mixture:light-area+cosine")) == {
+    assert study_report.expected_slope(parse_estimator("jittered:mixture:light-area+cosine")) == {
         "smooth": -1.0, "discontinuous": -1.0}
 
 
@@ -177,6 +177,6 @@ def test_material_and_technique_entries_are_consistent():
 def test_study_columns_cover_every_form():
     """results.csv has a pred_ column for every form of theory.FORMS (and no other), and its
     bounds are theory's."""
-    assert set(study.FORMS) == {f.name for f in theory.FORMS}
-    assert len(study.FORMS) == len(theory.FORMS)
-    assert study.BOUND_FORMS == theory.BOUNDS == tuple(f.name for f in theory.FORMS if f.bound)
+    assert set(study_file.FORMS) == {f.name for f in theory.FORMS}
+    assert len(study_file.FORMS) == len(theory.FORMS)
+    assert study_file.BOUND_FORMS == theory.BOUNDS == tuple(f.name for f in theory.FORMS if f.bound)

@@ -15,16 +15,18 @@ else:  # pragma: no cover - warp-lang before the logging API
     wp.config.quiet = True
 
 from .errors import WarpisError  # noqa: E402
+from .version import __version__  # noqa: E402
 from .scenes import Scene, bundled_scenes, load_scene  # noqa: E402
 from .scenes.environment import Environment  # noqa: E402
 from .kernels.engine import run_moments, run_trials  # noqa: E402
+from .kernels import camera as _camera  # noqa: E402,F401  (registers the camera's ray cast)
 from .kernels.integrand import ShadingPoint  # noqa: E402
 from .kernels.patterns import register_pattern, unregister_pattern  # noqa: E402
 from .kernels.rng import uniform  # noqa: E402
 from .kernels.techniques import register_technique, unregister_technique  # noqa: E402
-from .analysis.stats import variance_interval  # noqa: E402
+from .stats import variance_interval  # noqa: E402
+from .analysis import quadrature as _quadrature  # noqa: E402,F401  (registers the optimal oracle's solver)
 
-__version__ = "0.1.0"
 __all__ = ["Environment", "Scene", "ShadingPoint", "WarpisError", "bundled_scenes", "load_scene", "register_pattern",
            "register_technique", "run_moments", "run_trials", "uniform", "unregister_pattern", "unregister_technique",
            "variance_interval", "__version__"]

@@ -28,6 +28,7 @@ from typing import Any, NoReturn
 
 from . import limits
 from .errors import WarpisError
+from .kernels.device import quiet_warp
 from .kernels.estimators import estimator_help
 from .kernels.techniques import TECHNIQUES
 
@@ -250,7 +251,7 @@ def _mean_z(mean: float, stderr: float, ref: float, ref_stderr: float) -> tuple[
     not (``stats.zscore``); they agree when |z| ≤ 1.96, the two-sided 95% rule by which
     verify and study call a prediction inside.
     """
-    from .analysis.stats import zscore
+    from .stats import zscore
     from .runs.cell import Z95
 
     z = float(zscore(mean, math.hypot(stderr, ref_stderr), ref))
@@ -269,7 +270,7 @@ def _optimal_alphas(scene: Any, est: Any, args: argparse.Namespace) -> dict[str,
     """The optimal combiners' α per receiver: the oracle's (``alpha``), or the pilot's mean
     and standard deviation over the run's trials (``alpha_mean``, ``alpha_sd``); None for
     any other combiner."""
-    from .analysis.theory import optimal_alpha
+    from .analysis.quadrature import optimal_alpha
     from .kernels.engine import pilot_alphas, select_receivers
 
     if est.combiner_entry.oracle:
@@ -323,7 +324,7 @@ def cmd_study(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from .runs.outdir import out_option
-    from .runs.study import default_out, load_study
+    from .runs.study_file import default_out, load_study
 
     out = out_option(args.out)  # before the study is read: an empty --out is not "."
     study = load_study(Path(args.file), threads=args.threads)
@@ -379,7 +380,7 @@ def _baseline(text: str | None, estimators) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from .runs.outdir import out_option
-    from .runs.study import default_out, demo_study
+    from .runs.study_file import default_out, demo_study
 
     out = out_option(args.out)  # an empty --out is an error, not the default folder
     study = demo_study(threads=args.threads)
@@ -545,7 +546,7 @@ def progress_options(c: argparse.ArgumentParser) -> None:
 
 
 def cluster_options(c: argparse.ArgumentParser) -> None:
-    """``--scheduler`` / ``--workers``: measure the cells on a Dask cluster (README, "Running on a cluster")."""
+    """``--scheduler`` / ``--workers``: measure the cells on a Dask cluster (docs/clusters.md)."""
     g = c.add_mutually_exclusive_group()
     g.add_argument("--scheduler", metavar="ADDRESS",
                    help="run the cells on the Dask cluster of this scheduler (tcp://host:port); same results")
@@ -652,7 +653,7 @@ def build_parser() -> argparse.ArgumentParser:
                                                               "results.csv, summary.json, figures and report.md; "
                                                               "rerunning skips finished cells",
                        parents=[plugin])
-    c.add_argument("file", help="the study TOML (see README, 'Studies')")
+    c.add_argument("file", help="the study TOML (see docs/studies.md)")
     c.add_argument("--out", help="output directory (default ./warpis-out/<name>/)")
     c.add_argument("--threads", type=_positive, help="CPU threads (default: the study's, else all cores)")
     cluster_options(c)
@@ -671,28 +672,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _quiet_warp() -> None:
-    """Start Warp so that only warpis's own lines reach the terminal.
-
-    On a machine without a GPU, Warp's native library prints a CUDA-driver notice to the
-    process's stderr while it starts; that is noise (an unusable ``--device`` gets its own
-    one-line error), so the start-up runs with file descriptor 2 pointed at /dev/null.
-    """
-    import warp as wp
-
-    if hasattr(wp, "LOG_ERROR"):
-        wp.config.log_level = wp.LOG_ERROR
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            wp.init()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 def _silence_stdout() -> None:
     """Point stdout at /dev/null so the interpreter's last flush cannot fail again."""
     os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -709,7 +688,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     plugins = _plugin_paths(argv)
     if plugins:
-        _quiet_warp()
+        quiet_warp()
         try:
             for path in plugins:
                 load_plugin(path)
@@ -717,7 +696,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"warpis: error: {exc}", file=sys.stderr)
             return 2
     args = build_parser().parse_args(argv)
-    _quiet_warp()
+    quiet_warp()
     try:
         if hasattr(args, "device"):
             from .kernels.device import check_device

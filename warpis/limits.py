@@ -15,6 +15,9 @@ wrapped or silently rounded:
   overflow turns into inf and then NaN);
 * coordinates are float32 in the kernels and are squared there (distances, areas), so
   their magnitude is at most ``MAX_COORDINATE``.
+
+Also here, because every floor needs them: the number of CPU threads a run uses
+(``default_threads``) and the check of a Warp device name (``check_device``).
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import re
 from collections.abc import Iterable
 from typing import Any
 
@@ -166,3 +170,34 @@ def memory(needed: float, what: str) -> None:
     if needed > have / 2:
         raise WarpisError(f"{what}: would need about {needed / 2**30:.3g} GiB of memory, more than half the "
                           f"{have / 2**30:.3g} GiB available")
+
+
+def default_threads() -> int:
+    """Worker threads for CPU launches: ``WARPIS_THREADS`` or the number of usable cores."""
+    env = os.environ.get("WARPIS_THREADS")
+    if env:
+        return count_text(env, "WARPIS_THREADS")
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - non-Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def check_device(device: str, what: str = "device") -> str:
+    """``device`` if it names a Warp device of this machine (cpu, cuda, cuda:N), else a
+    one-line error saying which devices exist."""
+    name = str(device)
+    if name == "cpu":
+        return name
+    match = re.fullmatch(r"cuda(?::(\d+))?", name)
+    if match is None:
+        raise WarpisError(f"{what} {name!r}: unknown device (valid: cpu, cuda, cuda:N)")
+    import warp as wp  # only a CUDA name needs Warp: the limits stay under the kernels
+
+    count = wp.get_cuda_device_count()
+    if count == 0:
+        raise WarpisError(f"{what} {name!r}: this machine has no CUDA device (use cpu)")
+    ordinal = int(match.group(1) or 0)
+    if ordinal >= count:
+        raise WarpisError(f"{what} {name!r}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
+    return name

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import chdtrc
 
-from .analysis.stats import sidak_threshold
+from .stats import sidak_threshold
 
 __all__ = ["ChiSquareTest", "orthonormal_frame"]
 

@@ -35,7 +35,6 @@ from dataclasses import dataclass
 from typing import Any, Generic, NamedTuple, TypeVar
 
 import numpy as np
-import warp as wp
 
 from .errors import WarpisError
 
@@ -150,6 +149,8 @@ class UserEntries:
         one-line WarpisError: not Warp functions, a taken name, or one an estimator spec
         cannot spell."""
         axis = self.registry.axis
+        import warp as wp  # only a user entry needs Warp here: the vocabulary stays under the kernels
+
         if not all(isinstance(f, wp.Function) for f in functions.values()):
             kind = "@wp.func functions" if len(functions) > 1 else "a @wp.func function"
             raise WarpisError(f"{axis} {name!r}: {' and '.join(functions)} must be {kind}")
@@ -222,7 +223,7 @@ class Pattern(Entry):
     strata: Callable[[int], int] | None = None
     blocks: Callable[[int], Blocks] | None = None  # m samples → independent blocks; None: no block form
     # Var(Σ ψ) over its m points from pairs of points, for a set that is not independent
-    # blocks (analysis/point_sets: a SumVarianceForm); None with blocks None: no exact form
+    # blocks (point_sets: a SumVarianceForm); None with blocks None: no exact form
     sum_variance: Callable[..., Any] | None = None
     slope: Slope | None = None  # expected convergence (for a stratifying combiner); None: none stated
 
@@ -362,3 +363,54 @@ class Material(Entry):
     diffuse: bool  # ρ is constant: Lambert's closed form × lambert_scale is exact where unoccluded
     lambert_scale: Callable[[Any, np.ndarray], np.ndarray]  # (Receivers, rows) → the factor on Lambert's irradiance
     bsdf_technique: str  # the technique that samples its BRDF
+
+
+# --------------------------------------------------------------------------- the materials
+# The BRDFs the integrand evaluates (kernels/integrand.py reads their codes), here beside
+# the other registries so that scene sources validate against them without the kernels.
+
+
+def _unit_rho(rx: Any, rows: np.ndarray) -> np.ndarray:
+    return np.ones(len(rows))
+
+
+def _albedo_over_pi(rx: Any, rows: np.ndarray) -> np.ndarray:
+    return rx.albedo[rows] / np.pi
+
+
+def _specular_over_pi(rx: Any, rows: np.ndarray) -> np.ndarray:
+    return rx.specular[rows].sum(axis=1) / np.pi
+
+
+def _diffuse_and_specular_over_pi(rx: Any, rows: np.ndarray) -> np.ndarray:
+    return (rx.albedo[rows] + rx.specular[rows].sum(axis=1)) / np.pi
+
+
+MICROFACET_KEYS = ("alpha", "distribution", "sample_visible", "eta", "specular", "view")
+
+MATERIALS: Registry[Material] = Registry("material", [
+    Material(name="irradiance", code=0, description="ρ = 1: F is the irradiance", diffuse=True,
+             lambert_scale=_unit_rho, bsdf_technique="cosine"),
+    Material(name="lambert", code=1, description="diffuse, ρ = albedo/π", keys=("albedo",), diffuse=True,
+             lambert_scale=_albedo_over_pi, bsdf_technique="cosine"),
+    # A Phong lobe is normalised so that ∫ ρ cos θ dω ≈ albedo: albedo/π × Lambert's value
+    # gives F's scale (reference.py's floor), though not F.  Likewise the microfacet
+    # materials' reflectances over π.
+    Material(name="phong", code=2, description="energy-normalised Phong lobe albedo·(e+2)/(2π)·cos^e α about the "
+                                               "view's mirror direction",
+             keys=("albedo", "exponent", "view"), required=("exponent", "view"), diffuse=False,
+             lambert_scale=_albedo_over_pi, bsdf_technique="phong"),
+    Material(name="roughconductor", code=3, description="Mitsuba 3's roughconductor: a GGX or Beckmann microfacet "
+                                                        "lobe with the conductor's Fresnel term",
+             keys=(*MICROFACET_KEYS, "k"), required=("alpha", "eta", "k", "view"), diffuse=False,
+             lambert_scale=_specular_over_pi, bsdf_technique="bsdf"),
+    Material(name="roughplastic", code=4, description="Mitsuba 3's roughplastic: a dielectric microfacet coating over "
+                                                      "a diffuse base, with its internal scattering",
+             keys=(*MICROFACET_KEYS, "albedo"), required=("alpha", "view"), diffuse=False,
+             lambert_scale=_diffuse_and_specular_over_pi, bsdf_technique="bsdf"),
+])
+
+
+# Microfacet distributions, numbered as Mitsuba 3 numbers them (MicrofacetType);
+# kernels/shading.py names the same codes for the kernels.
+DISTRIBUTIONS = {"beckmann": 0, "ggx": 1}

@@ -42,12 +42,13 @@ import numpy as np
 from ..errors import WarpisError
 from ..kernels.engine import as_scene, run_trials, select_receivers
 from ..kernels.estimators import parse_estimator
-from ..kernels.integrand import MATERIALS, delta_terms
+from ..kernels.integrand import delta_terms
+from ..vocabulary import MATERIALS
 from ..kernels.techniques import TECHNIQUES
 from ..limits import count as check_count
 from ..limits import seed as check_seed
 from ..scenes import Scene
-from .closed_form import _DEFAULT_REL_TOL, pyramid_blockers, triangle_irradiance
+from .closed_form import DEFAULT_REL_TOL, pyramid_blockers, triangle_irradiance
 
 QUADRATURE_SAMPLES = 4096
 QUADRATURE_REPLICAS = 32
@@ -265,7 +266,7 @@ def _unblocked(scene: Scene, idx: np.ndarray, among: np.ndarray, progress: Progr
     rx, sel = scene.receivers, idx[among]
     tris, emits = scene.triangle_vertices(), scene.emission != 0.0
     pts = np.concatenate([tris.reshape(-1, 3), rx.positions[sel]], axis=0)
-    tol = _DEFAULT_REL_TOL * float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    tol = DEFAULT_REL_TOL * float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
     if stage is not None:
         stage("closed-form test", "receivers")
     clear = np.empty(len(sel), bool)

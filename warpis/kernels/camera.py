@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ..scenes.camera import register_ray_caster
 from .integrand import FAR
 
 
@@ -31,3 +32,6 @@ def first_hits(vertices: np.ndarray, triangles: np.ndarray, origin: np.ndarray, 
     wp.launch(first_hit_kernel, dim=len(directions), device=device,
               inputs=[mesh.id, wp.vec3(*np.asarray(origin, np.float32)), dirs, face])
     return face.numpy()
+
+
+register_ray_caster(first_hits)  # camera receivers (scenes/camera.py) are found with it

@@ -16,7 +16,9 @@ DeviceScene (not just ``.data``) until its launches are done.
 
 from __future__ import annotations
 
+import os
 import re
+import sys
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -27,6 +29,8 @@ import numpy as np
 import warp as wp
 
 from ..errors import WarpisError
+from ..limits import check_device
+from ..vocabulary import MATERIALS
 from .bvh import PARALLEL, PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, magnitude, upload_wide_bvh, vec64
 from .environment import EnvironmentData
 
@@ -101,24 +105,6 @@ class ReceiverData:
     plastic_row: wp.array(dtype=wp.int32)  # row of SceneData.plastic_table, -1 for other materials
 
 
-def check_device(device: str, what: str = "device") -> str:
-    """``device`` if it names a Warp device of this machine (cpu, cuda, cuda:N), else a
-    one-line error saying which devices exist."""
-    name = str(device)
-    if name == "cpu":
-        return name
-    match = re.fullmatch(r"cuda(?::(\d+))?", name)
-    if match is None:
-        raise WarpisError(f"{what} {name!r}: unknown device (valid: cpu, cuda, cuda:N)")
-    count = wp.get_cuda_device_count()
-    if count == 0:
-        raise WarpisError(f"{what} {name!r}: this machine has no CUDA device (use cpu)")
-    ordinal = int(match.group(1) or 0)
-    if ordinal >= count:
-        raise WarpisError(f"{what} {name!r}: this machine has {count} CUDA device(s), cuda:0 to cuda:{count - 1}")
-    return name
-
-
 @dataclass(eq=False)
 class DeviceScene:
     """The Warp side of one scene content on one device (see :func:`upload`)."""
@@ -139,6 +125,26 @@ class DeviceScene:
             if key not in self._derived:
                 self._derived[key] = build()
             return self._derived[key]
+
+
+def quiet_warp() -> None:
+    """Start Warp so that only warpis's own lines reach the terminal.
+
+    On a machine without a GPU, Warp's native library prints a CUDA-driver notice to the
+    process's stderr while it starts; that is noise (an unusable ``--device`` gets its own
+    one-line error), so the start-up runs with file descriptor 2 pointed at /dev/null.
+    """
+    if hasattr(wp, "LOG_ERROR"):
+        wp.config.log_level = wp.LOG_ERROR
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 _cache: OrderedDict[tuple[str, str], DeviceScene] = OrderedDict()
@@ -353,7 +359,6 @@ def plastic_rows(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """roughplastic's tables: one row per distinct (distribution, alpha, eta) among the
     roughplastic receivers (a zero row when there is none), and each receiver's row (-1
     for other materials), computed once per upload for both structs."""
-    from .integrand import MATERIALS  # the integrand imports this module
     from .microfacet import PLASTIC_TABLE_WIDTH, plastic_table
 
     rx = scene.receivers

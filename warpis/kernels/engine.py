@@ -10,7 +10,7 @@ Two ways to collect the trials share one launch loop (:func:`_drive`):
 
 * :func:`run_trials` keeps every estimate, an (R, M) float64 array;
 * :func:`run_moments` keeps only running moments per receiver
-  (:class:`~warpis.analysis.stats.SampleMoments`): trials are reduced over fixed blocks of
+  (:class:`~warpis.stats.SampleMoments`): trials are reduced over fixed blocks of
   ``BLOCK`` trials and the blocks merged in trial order, so memory stays flat in M and
   the result does not depend on threads or chunks.
 """
@@ -28,7 +28,8 @@ import numpy as np
 import warp as wp
 
 from .. import limits
-from ..analysis.stats import SampleMoments
+from ..limits import default_threads
+from ..stats import SampleMoments
 from ..errors import WarpisError
 from .device import DeviceScene, upload
 from .estimators import Estimator, KernelArgs, parse_estimator, pilot_kernel_for_registry, trial_kernel_for_registry
@@ -56,17 +57,6 @@ MAX_BUFFER_BYTES = 1 << 27
 
 Progress = Callable[[int, int], None]  # (trials done, trials total)
 T = TypeVar("T")
-
-
-def default_threads() -> int:
-    """Worker threads for CPU launches: ``WARPIS_THREADS`` or the number of usable cores."""
-    env = os.environ.get("WARPIS_THREADS")
-    if env:
-        return limits.count_text(env, "WARPIS_THREADS")
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - non-Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def as_scene(scene: Scene | str | os.PathLike, what: str = "scene") -> Scene:
@@ -140,14 +130,26 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry(), first, delta)
 
 
+# The optimal oracle's coefficients come from the theory, a floor above the engine: it
+# registers its solver here when it is imported (warpis/__init__.py imports it).
+_oracle: list[Callable[[Scene, np.ndarray, tuple[str, ...]], np.ndarray]] = []
+
+
+def register_oracle(solve: Callable[[Scene, np.ndarray, tuple[str, ...]], np.ndarray]) -> None:
+    """Set the function ``solve(scene, rows, techniques) → (R, K) α`` that the
+    ``optimal-oracle`` combiner's runs take their coefficients from."""
+    _oracle[:] = [solve]
+
+
 def _alphas(scene: Scene, est: Estimator, rows: np.ndarray) -> np.ndarray:
     """The optimal-oracle's coefficients at each receiver of ``rows``, zero-padded to four
     ((R, 4)); one unread row for every other combiner."""
     if not est.combiner_entry.oracle:
         return np.zeros((1, 4))
-    from ..analysis.theory import optimal_alpha  # theory builds on the engine
-
-    alpha = optimal_alpha(scene, rows, est.techniques)
+    if not _oracle:
+        raise WarpisError(f"estimator {est.spec}: the optimal oracle's solver is not registered "
+                          f"(import warpis.analysis.quadrature)")
+    alpha = _oracle[0](scene, rows, est.techniques)
     return np.pad(alpha, ((0, 0), (0, 4 - alpha.shape[1])))
 
 

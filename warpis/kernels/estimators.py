@@ -20,7 +20,7 @@ k, ḡ their average, N_g techniques, m = N/N_g samples per technique):
 ``cutoff``   multi-sample MIS with Veach's cutoff heuristic, spelled ``cutoff=α`` (default
              α = 0.1): w_k = g_k / Σ_{j: g_j ≥ α g_max} g_j where g_k ≥ α g_max, else 0.
 ``optimal-oracle``  Kondapaneni et al. 2019's optimal MIS at fixed coefficients α
-             (per receiver, from warpis's dense evaluation: ``theory.optimal_alpha``):
+             (per receiver, from warpis's dense evaluation: ``quadrature.optimal_alpha``):
              Σ_k α_k + (1/N) Σ_k Σ_i (f − α·g)/ḡ, every sample counting (a failed sample
              of technique k adds −N_g α_k, see below).  Unbiased for any fixed α; the α
              solving A α = b minimises the variance.

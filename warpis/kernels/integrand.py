@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import warp as wp
 
-from ..vocabulary import Material, Registry
+from ..vocabulary import MATERIALS
 from .bvh import SELF_HIT, any_hit_between, closest_hit_from
 from .device import ReceiverData, SceneData, upload
 from .emitters import nearest_emitter
@@ -64,47 +64,6 @@ if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes.description import Receivers
 
 __all__ = ["MATERIALS", "ShadingPoint", "brdf", "delta_terms", "evaluate_integrand", "integrand", "shading_point"]
-
-
-def _unit_rho(rx: Receivers, rows: np.ndarray) -> np.ndarray:
-    return np.ones(len(rows))
-
-
-def _albedo_over_pi(rx: Receivers, rows: np.ndarray) -> np.ndarray:
-    return rx.albedo[rows] / np.pi
-
-
-def _specular_over_pi(rx: Receivers, rows: np.ndarray) -> np.ndarray:
-    return rx.specular[rows].sum(axis=1) / np.pi
-
-
-def _diffuse_and_specular_over_pi(rx: Receivers, rows: np.ndarray) -> np.ndarray:
-    return (rx.albedo[rows] + rx.specular[rows].sum(axis=1)) / np.pi
-
-
-MICROFACET_KEYS = ("alpha", "distribution", "sample_visible", "eta", "specular", "view")
-
-MATERIALS: Registry[Material] = Registry("material", [
-    Material(name="irradiance", code=0, description="ρ = 1: F is the irradiance", diffuse=True,
-             lambert_scale=_unit_rho, bsdf_technique="cosine"),
-    Material(name="lambert", code=1, description="diffuse, ρ = albedo/π", keys=("albedo",), diffuse=True,
-             lambert_scale=_albedo_over_pi, bsdf_technique="cosine"),
-    # A Phong lobe is normalised so that ∫ ρ cos θ dω ≈ albedo: albedo/π × Lambert's value
-    # gives F's scale (reference.py's floor), though not F.  Likewise the microfacet
-    # materials' reflectances over π.
-    Material(name="phong", code=2, description="energy-normalised Phong lobe albedo·(e+2)/(2π)·cos^e α about the "
-                                               "view's mirror direction",
-             keys=("albedo", "exponent", "view"), required=("exponent", "view"), diffuse=False,
-             lambert_scale=_albedo_over_pi, bsdf_technique="phong"),
-    Material(name="roughconductor", code=3, description="Mitsuba 3's roughconductor: a GGX or Beckmann microfacet "
-                                                        "lobe with the conductor's Fresnel term",
-             keys=(*MICROFACET_KEYS, "k"), required=("alpha", "eta", "k", "view"), diffuse=False,
-             lambert_scale=_specular_over_pi, bsdf_technique="bsdf"),
-    Material(name="roughplastic", code=4, description="Mitsuba 3's roughplastic: a dielectric microfacet coating over "
-                                                      "a diffuse base, with its internal scattering",
-             keys=(*MICROFACET_KEYS, "albedo"), required=("alpha", "view"), diffuse=False,
-             lambert_scale=_diffuse_and_specular_over_pi, bsdf_technique="bsdf"),
-])
 
 
 # The kernels' material codes, from the registry (vocabulary.MATERIALS).

@@ -7,7 +7,7 @@ square as m allows), ``antithetic`` (pairs u and (1,1) − u), ``jittered-antith
 of the square in the mirrored cells), and the point sets renderers use today: ``lhs``
 (Latin hypercube), ``cmj`` (Kensler's correlated multi-jitter), ``sobol`` and ``halton``
 (Owen-scrambled), ``lattice`` (a rank-1 lattice with a random shift), whose exact
-variances are pair forms (``sum_variance``, analysis/point_sets) where they have one.
+variances are pair forms (``sum_variance``, point_sets) where they have one.
 Every pattern is randomised per technique and trial, so trials stay independent and each point is
 uniform on [0,1)² (every estimator stays unbiased).  Points are computed from their index
 alone, so a kernel needs no per-trial arrays.  What the rest of warpis knows about each pattern (its
@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from ..analysis.point_sets.lattice import lattice_sum_variance
-from ..analysis.point_sets.lhs import lhs_sum_variance
-from ..analysis.point_sets.nets import halton_sum_variance, sobol_sum_variance
+from ..point_sets.lattice import lattice_sum_variance
+from ..point_sets.lhs import lhs_sum_variance
+from ..point_sets.nets import halton_sum_variance, sobol_sum_variance
 from ..errors import WarpisError
 from ..vocabulary import (IID_SLOPE, SCRAMBLED_NET_SLOPE, STRATIFIED_SLOPE, Blocks, Pattern, Registry, Slope,
                           UserEntries, UserEntry, every_sample, grid_shape, grid_side)
@@ -66,7 +66,7 @@ PATTERNS: Registry[Pattern] = Registry("pattern", [
                                                             "the centre into the mirrored cells",
             paired=True, strata=grid_side, blocks=_pairs_of_cells, slope=STRATIFIED_SLOPE),
     # The point sets below are not independent blocks: their exact variances are pair
-    # forms (analysis/point_sets), except cmj's, whose correlated permutations have no
+    # forms (point_sets), except cmj's, whose correlated permutations have no
     # simple pair law (its predictions say "no exact form").  LHS keeps the rate of
     # independent points (it removes the additive part of the variance, not its order).
     Pattern(name="lhs", code=4, description="Latin hypercube: one point in each of m columns and m rows, "

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..vocabulary import DISTRIBUTIONS
 from .warps import frame
 
 # Microfacet distributions, numbered as Mitsuba 3 numbers them (MicrofacetType).
-BECKMANN = wp.constant(0)
-GGX = wp.constant(1)
-DISTRIBUTIONS = {"beckmann": 0, "ggx": 1}
+BECKMANN = wp.constant(DISTRIBUTIONS["beckmann"])
+GGX = wp.constant(DISTRIBUTIONS["ggx"])
 
 
 @wp.struct

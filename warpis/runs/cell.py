@@ -31,8 +31,9 @@ import numpy as np
 from scipy.special import ndtri
 
 from ..analysis.reference import Reference, reference
-from ..analysis.stats import VarianceEstimate
-from ..analysis.theory import BOUNDS, Estimate, Moments, moments, predictions
+from ..stats import VarianceEstimate
+from ..analysis.quadrature import Estimate, Moments, moments
+from ..analysis.theory import BOUNDS, predictions
 from ..errors import WarpisError
 from ..kernels.engine import run_moments, warm
 from ..kernels.estimators import Estimator

@@ -33,8 +33,8 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from ..analysis.reference import Reference, reference
-from ..analysis.stats import SampleMoments
-from ..analysis.theory import Moments, moments
+from ..stats import SampleMoments
+from ..analysis.quadrature import Moments, moments
 from ..errors import WarpisError
 from ..kernels.engine import BLOCK, block_count, run_block_moments, warm
 from ..scenes import Scene
@@ -54,7 +54,7 @@ WORKER_TIMEOUT = 60  # seconds to wait for a first worker
 
 def worker_version() -> str:
     """The warpis version of the process this runs in."""
-    from .. import __version__
+    from ..version import __version__
 
     return __version__
 
@@ -62,9 +62,9 @@ def worker_version() -> str:
 def start_worker() -> str:
     """Start Warp quietly in a worker (the CUDA-driver notice of a CPU-only machine is
     noise), so every later task finds it ready."""
-    from ..cli import _quiet_warp
+    from ..kernels.device import quiet_warp
 
-    _quiet_warp()
+    quiet_warp()
     return worker_version()
 
 

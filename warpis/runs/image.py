@@ -3,7 +3,7 @@
 For each estimator, every receiver of a camera scene (scenes/camera.py) is run for M
 trials of N samples; the result is a set of (H, W) images: the mean, one trial (what a
 render at N samples looks like), the variance with its 95% fourth-moment interval, the
-exact predicted variance (theory.exact_variances, a fixed budget of dense points per
+exact predicted variance (quadrature.exact_variances, a fixed budget of dense points per
 pixel, its standard error kept), measured/predicted, the relative error √variance /
 reference, the time per estimate and the efficiency 1/(variance × time), relative to a
 baseline estimator; across estimators, the per-pixel winner by efficiency.  Masked
@@ -36,8 +36,8 @@ import numpy as np
 
 from .. import limits
 from ..analysis.reference import reference
-from ..analysis.stats import SampleMoments
-from ..analysis.theory import exact_form_problem, exact_variances
+from ..stats import SampleMoments
+from ..analysis.quadrature import exact_form_problem, exact_variances
 from ..errors import WarpisError, fail
 from ..kernels.engine import default_threads, run_moments, run_trials, warm
 from ..kernels.estimators import Estimator
@@ -46,7 +46,7 @@ from . import outdir
 from .cell import check_trials
 
 TILE = 1024  # receivers per tile: a few seconds of work, so an interrupt loses little
-# Dense points per pixel and technique for the exact predicted variance (theory.exact_variances):
+# Dense points per pixel and technique for the exact predicted variance (quadrature.exact_variances):
 # a few per cent of relative error per pixel, and a few seconds per estimator for 10^4 pixels.
 PREDICTION_POINTS = 1 << 12
 # Jittered quadrature samples per replica (× 32 replicas) for each pixel's reference
@@ -77,7 +77,7 @@ class ImageRun:
     def __post_init__(self) -> None:
         if self.scene.receivers.image is None:
             raise fail(self.scene.path or self.scene.name, "has no camera: an image needs a camera scene "
-                                                           "(README.md, \"Images\")")
+                                                           "(docs/images.md)")
         if not self.estimators:
             raise WarpisError("--estimator: give at least one estimator")
         specs = [e.spec for e in self.estimators]

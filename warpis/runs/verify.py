@@ -25,7 +25,7 @@ from .. import limits
 from ..analysis.theory import missing_forms
 from ..kernels.engine import as_scene, select_receivers
 from ..kernels.estimators import COMBINERS, Estimator, parse_estimator
-from ..kernels.integrand import MATERIALS
+from ..vocabulary import MATERIALS
 from ..kernels.patterns import PATTERNS
 from ..scenes import Scene
 from . import outdir
@@ -149,7 +149,7 @@ def _measure(scene: Scene, techs: tuple[str, ...], ests: list[Estimator], n_valu
 
 
 def json_row(row: Row) -> dict:
-    """A row of verify.json (README.md, "JSON that other tools read"): the shared row's
+    """A row of verify.json (docs/python-api.md, "JSON that other tools read"): the shared row's
     numbers, each prediction's relative error, and eq. 18 with the bias for biased IS."""
     plain = row.as_dict()
     out = {k: plain[k] for k in ("receiver", "estimator", "n", "mean", "mean_stderr", "reference",

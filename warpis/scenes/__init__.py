@@ -1,7 +1,7 @@
 """Scenes: where a :class:`Scene` (plain numpy data, :mod:`.description`) comes from.
 
 Sources: a TOML scene file (:mod:`.toml_source`), a Mitsuba 3 XML scene with its
-receivers file (:mod:`.mitsuba_source`, needs the optional ``mitsuba`` package), arrays
+receivers file (:mod:`.mitsuba`, needs the optional ``mitsuba`` package), arrays
 (:meth:`Scene.from_arrays`), and the scenes bundled in ``meshes/`` by name.
 :func:`load_scene` picks the source by the file's suffix (``SOURCES``); a new scene
 source is one module producing a Scene and one entry there.
@@ -14,9 +14,9 @@ from importlib import resources
 from pathlib import Path
 
 from ..errors import fail
-from ..kernels.device import check_device
+from ..limits import check_device
 from .description import DIGEST_FIELDS, Receivers, Scene
-from .mitsuba_source import check_channel, load_mitsuba
+from .mitsuba import check_channel, load_mitsuba
 from .toml_source import load_toml, read_toml
 
 __all__ = ["DIGEST_FIELDS", "SCENE_FILES", "SOURCES", "Receivers", "Scene", "bundled_scenes", "load_scene",
@@ -98,7 +98,7 @@ def load_scene(scene: str | Path, device: str = "cpu", *, channel: str | None = 
     Returns
     -------
     Scene
-        Plain numpy data; ``scene.data`` and ``scene.receiver_data`` upload it on first use.
+        Plain numpy data; :func:`warpis.kernels.device.upload` puts it on its device.
 
     Raises
     ------
@@ -117,5 +117,5 @@ def load_scene(scene: str | Path, device: str = "cpu", *, channel: str | None = 
         check_channel(channel, file)
     loaded = SOURCES.get(suffix, load_toml)(file, str(device), width=width, height=height)
     if camera and loaded.receivers.image is None:
-        raise fail(file, "has no camera: an image needs [receivers.camera] in a TOML scene (README.md, \"Images\")")
+        raise fail(file, "has no camera: an image needs [receivers.camera] in a TOML scene (docs/images.md)")
     return loaded

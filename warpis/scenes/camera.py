@@ -27,8 +27,28 @@ import numpy as np
 
 from .. import limits
 from ..errors import WarpisError, fail
-from ..kernels.camera import first_hits
 from .normals import interpolate_normals
+
+# The primary-ray cast that finds what each pixel sees is a Warp kernel, a floor above
+# the scenes: kernels/camera.py registers it here when it is imported (warpis/__init__.py
+# imports it), so the scenes stay plain data that never import the kernels.
+RayCaster = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str], np.ndarray]
+_ray_caster: list[RayCaster] = []
+
+
+def register_ray_caster(cast: RayCaster) -> None:
+    """Set ``cast(vertices, triangles, origin, directions, device) → (P,) int32``, the first
+    triangle each ray meets (−1: none), which camera receivers are found with."""
+    _ray_caster[:] = [cast]
+
+
+def first_hits(vertices: np.ndarray, triangles: np.ndarray, origin: np.ndarray, directions: np.ndarray,
+               device: str) -> np.ndarray:
+    """The registered ray cast (see :func:`register_ray_caster`)."""
+    if not _ray_caster:
+        raise WarpisError("camera receivers need the kernels' ray cast: import warpis (it registers it)")
+    return _ray_caster[0](vertices, triangles, origin, directions, device)
+
 
 # What a pixel sees (ImageLayout.seen).
 PIXEL_RECEIVER, PIXEL_NOTHING, PIXEL_EMITTER, PIXEL_BACK, PIXEL_UNSHADED = 0, 1, 2, 3, 4

@@ -1,12 +1,12 @@
 """A scene as plain data: geometry, emission and receivers in numpy, named by their content.
 
 Every scene source (a TOML scene file, :meth:`Scene.from_arrays`, any future importer)
-ends in :func:`_assemble`, the one gate that checks each array against the kernels'
+ends in :func:`assemble_scene`, the one gate that checks each array against the kernels'
 limits before anything reaches a device.  A :class:`Scene` holds read-only numpy arrays
 and the name of its Warp device, nothing else: it pickles, and :attr:`Scene.digest`
 names its content.  Its Warp side (mesh, BVH, structs, self-hit slabs, light table) is
-built by :func:`warpis.kernels.device.upload` once per (digest, device); ``scene.data``,
-``scene.receiver_data`` and ``scene.slab`` fetch it.
+built by :func:`warpis.kernels.device.upload` once per (digest, device), a floor above:
+the scenes never import the kernels.
 
 Bad input raises :class:`~warpis.errors.WarpisError` with one line naming the file (or
 the scene) and the problem.
@@ -26,10 +26,8 @@ import numpy as np
 
 from .. import limits
 from ..errors import WarpisError, fail
-from ..kernels.device import ReceiverData, SceneData, check_device, upload
-from ..kernels.integrand import MATERIALS
-from ..kernels.shading import DISTRIBUTIONS
-from ..vocabulary import Material
+from ..limits import check_device
+from ..vocabulary import DISTRIBUTIONS, MATERIALS, Material
 from .camera import ImageLayout
 from .delta import DeltaLights, check_delta_lights
 from .environment import Environment, check_environment
@@ -233,7 +231,7 @@ class Scene:
         rx = _receivers_from_arrays(where, positions, normals, material, albedo, exponent, view, group,
                                     group_names, grid_shape, microfacet, geometric_normals)
         names = [name] if mesh_names is None else mesh_names
-        return _assemble(where, lambda m: f"{where}: mesh {names[m]!r}", "give some triangle an emission > 0",
+        return assemble_scene(where, lambda m: f"{where}: mesh {names[m]!r}", "give some triangle an emission > 0",
                          name=name, vertices=vertices, triangles=triangles, emission=emission, receivers=rx,
                          triangle_mesh=triangle_mesh, mesh_names=names, description=description,
                          device=str(device), environment=environment, delta_lights=delta_lights)
@@ -261,23 +259,6 @@ class Scene:
             h.update(f"{name} {a.dtype.str} {a.shape}\0".encode())
             h.update(a.tobytes())
         return h.hexdigest()
-
-    # ----------------------------------------------------------------- on the device
-
-    @property
-    def data(self) -> SceneData:
-        """The SceneData struct on ``device`` (see :func:`warpis.kernels.device.upload`)."""
-        return upload(self).data
-
-    @property
-    def receiver_data(self) -> ReceiverData:
-        """The ReceiverData struct on ``device``."""
-        return upload(self).receiver_data
-
-    @property
-    def slab(self) -> np.ndarray:
-        """(R,) self-hit slab height of each receiver, as computed on ``device``."""
-        return upload(self).slab
 
     # ----------------------------------------------------------------- derived numbers
 
@@ -333,12 +314,13 @@ class Scene:
             "total_power": self.total_power,
         }
 
-def _coordinates(points: np.ndarray, what: str, where: object) -> np.ndarray:
+def checked_coordinates(points: np.ndarray, what: str, where: object) -> np.ndarray:
     """Points whose coordinates float32 kernels can hold and square (limits.coordinates)."""
     _within(where, limits.coordinates, points, what)
     return points
 
-def _unit(v: np.ndarray, what: str, where: object) -> np.ndarray:
+def checked_unit(v: np.ndarray, what: str, where: object) -> np.ndarray:
+    """``v``'s rows scaled to unit length, or a one-line error at ``where`` naming a zero row."""
     norms = np.linalg.norm(v, axis=-1, keepdims=True)
     if not np.all(norms > 0):
         raise fail(where, f"{what} has zero length")
@@ -350,7 +332,7 @@ def _triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 RECEIVER_BYTES = 256
 
-def _receiver_count(count: int, what: str, where: object) -> None:
+def check_receiver_count(count: int, what: str, where: object) -> None:
     """Refuse up front a receiver count the kernels cannot index or memory cannot hold."""
     if count > limits.MAX_COUNT:
         raise fail(where, f"{what}: {count:,} receivers, more than the {limits.MAX_COUNT:,} the kernels can index")
@@ -448,7 +430,7 @@ def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: A
     """Receivers from arrays, broadcast to one row per receiver, directions normalised."""
     p = _array(positions, "positions", where, (None, 3), "(R, 3)")
     count = len(p)
-    _receiver_count(count, "positions", where)  # before anything is broadcast to R rows
+    check_receiver_count(count, "positions", where)  # before anything is broadcast to R rows
     n = _directions(_per_receiver(normals, "normals", where, count, 3), "normals", where)
     ng = n if geometric_normals is None else \
         _directions(_per_receiver(geometric_normals, "geometric_normals", where, count, 3), "geometric_normals", where)
@@ -458,12 +440,12 @@ def _receivers_from_arrays(where: str, positions: Any, normals: Any, material: A
         else group_names
     _check_groups(g, names, where)
     return Receivers(
-        positions=p, normals=_unit(n, "normals", where), material=_material_codes(material, count, where),
+        positions=p, normals=checked_unit(n, "normals", where), material=_material_codes(material, count, where),
         albedo=_per_receiver(albedo, "albedo", where, count),
         exponent=_per_receiver(exponent, "exponent", where, count),
-        view=_unit(v, "view", where), group=g.astype(np.int32), group_names=names,
+        view=checked_unit(v, "view", where), group=g.astype(np.int32), group_names=names,
         grid_shape=_grid_shape(grid_shape, count, where),
-        geometric_normals=_unit(ng, "geometric_normals", where),
+        geometric_normals=checked_unit(ng, "geometric_normals", where),
         **grey_microfacet(microfacet, _per_receiver(albedo, "albedo", where, count), count, where),
     )
 
@@ -501,13 +483,13 @@ def _check_receivers(rx: Receivers, where: object) -> None:
     count = len(rx.positions)
     if rx.positions.ndim != 2 or rx.positions.shape[1] != 3 or count == 0:
         raise fail(where, f"receivers: positions must have shape (R, 3) with R >= 1, got {rx.positions.shape}")
-    _receiver_count(count, "receivers", where)
+    check_receiver_count(count, "receivers", where)
     for name in _RECEIVER_ARRAYS:
         expected = (count, 3) if name in ("positions", "normals", "view", "geometric_normals", *_CHANNEL_ARRAYS) \
             else (count,)
         if getattr(rx, name).shape != expected:
             raise fail(where, f"receivers: {name} has shape {getattr(rx, name).shape}, expected {expected}")
-    _coordinates(rx.positions, "positions", where)
+    checked_coordinates(rx.positions, "positions", where)
     _directions(rx.normals, "receiver normals", where)
     _directions(rx.geometric_normals, "receiver geometric normals", where)
     _directions(rx.view, "receiver view", where)
@@ -556,7 +538,7 @@ def _check_microfacet(rx: Receivers, where: object) -> None:
 def _geometry(vertices: Any, triangles: Any, where: object) -> tuple[np.ndarray, np.ndarray]:
     """(V, 3) float64 vertices the kernels can hold and (T, 3) int32 indices into them."""
     v = _array(vertices, "vertices", where, (None, 3), "(V, 3)")
-    _coordinates(v, "vertices", where)
+    checked_coordinates(v, "vertices", where)
     t = _array(triangles, "triangles", where, (None, 3), "(T, 3)", integer=True)
     if t.size > limits.MAX_COUNT:
         raise fail(where, f"triangles: {len(t):,} triangles, more than the kernels can index")
@@ -610,7 +592,7 @@ def _drop_needles(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndar
             emission[degenerate] = 0.0
     return emission
 
-def _assemble(where: object, mesh_where: Callable[[int], object], hint: str, *, name: str, vertices: Any,
+def assemble_scene(where: object, mesh_where: Callable[[int], object], hint: str, *, name: str, vertices: Any,
               triangles: Any, emission: Any, receivers: Receivers, triangle_mesh: Any, mesh_names: Any,
               description: str, device: str, path: Path | None = None, notes: tuple[str, ...] = (),
               environment: Environment | None = None, delta_lights: DeltaLights | None = None) -> Scene:

@@ -47,7 +47,7 @@ class Environment:
     rotation: np.ndarray  # (3, 3) float64, orthogonal: world ← local (the emitter's to_world)
     kind: str = "envmap"  # "envmap" or "constant": how a source spelled it
     label: str = ""  # the file or element it came from, for notes
-    grey: bool = True  # the same in every colour channel (channel y is then exact: mitsuba_source.py)
+    grey: bool = True  # the same in every colour channel (channel y is then exact: mitsuba/__init__.py)
     notes: tuple[str, ...] = field(default=())
 
     def __post_init__(self) -> None:

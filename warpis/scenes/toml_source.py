@@ -2,7 +2,7 @@
 
 A scene file lists meshes in any format trimesh reads, each with an optional transform
 and an optional one-sided ``emission``, receivers (explicit points or grids, in one or
-several groups) and the material at the receivers (README.md, "Scene files").  It
+several groups) and the material at the receivers (docs/scene-files.md).  It
 produces its arrays and hands them to the same gate as :meth:`Scene.from_arrays`.
 """
 
@@ -20,19 +20,20 @@ import trimesh
 
 from .. import limits
 from ..errors import WarpisError, fail
-from ..kernels.integrand import MATERIALS
-from ..kernels.shading import DISTRIBUTIONS
+from ..vocabulary import DISTRIBUTIONS, MATERIALS
 from .camera import Camera, camera_receiver_fields, cast_camera
-from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, _assemble, _coordinates, _receiver_count,
-                          _unit, grey_microfacet)
+from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, assemble_scene, checked_coordinates, check_receiver_count,
+                          checked_unit, grey_microfacet)
 
 
-def _check_keys(table: dict, allowed: set[str], where: str, file: Path) -> None:
+def check_keys(table: dict, allowed: set[str], where: str, file: Path) -> None:
+    """Refuse, naming them, the keys of ``table`` outside ``allowed`` (a typo is never ignored)."""
     unknown = sorted(set(table) - allowed)
     if unknown:
         raise fail(file, f"unknown key {unknown[0]!r} in {where} (allowed: {', '.join(sorted(allowed))})")
 
-def _require(table: dict, key: str, where: str, file: Path) -> Any:
+def required_key(table: dict, key: str, where: str, file: Path) -> Any:
+    """``table[key]``, or a one-line error naming the missing key and its table."""
     if key not in table:
         raise fail(file, f"missing key {key!r} in {where}")
     return table[key]
@@ -44,15 +45,17 @@ def _number(value: Any, what: str, file: Path) -> float:
         raise fail(file, f"{what} must be finite, got {value!r}")
     return float(value)
 
-def _vector(value: Any, what: str, file: Path, length: int = 3) -> np.ndarray:
+def toml_vector(value: Any, what: str, file: Path, length: int = 3) -> np.ndarray:
+    """A list of ``length`` finite numbers as a float64 array, or a one-line error."""
     if not isinstance(value, list) or len(value) != length:
         raise fail(file, f"{what} must be a list of {length} numbers, got {value!r}")
     return np.array([_number(v, what, file) for v in value], dtype=np.float64)
 
-def _vectors(value: Any, what: str, file: Path) -> np.ndarray:
+def toml_vectors(value: Any, what: str, file: Path) -> np.ndarray:
+    """A non-empty list of [x, y, z] points as an (N, 3) float64 array, or a one-line error."""
     if not isinstance(value, list) or not value:
         raise fail(file, f"{what} must be a non-empty list of [x, y, z] points")
-    return np.array([_vector(v, what, file) for v in value], dtype=np.float64).reshape(-1, 3)
+    return np.array([toml_vector(v, what, file) for v in value], dtype=np.float64).reshape(-1, 3)
 
 def _float32(value: float, what: str, file: Path) -> float:
     """A value >= 0 in the float32 kernels' range (see limits.float32_value)."""
@@ -72,10 +75,10 @@ def _transform(spec: Any, where: str, file: Path) -> np.ndarray:
     """A [[mesh]] transform table → 4×4 matrix: scale, then rotate, then translate."""
     if not isinstance(spec, dict):
         raise fail(file, f"{where}.transform must be a table")
-    _check_keys(spec, {"translate", "scale", "rotate"}, f"{where}.transform", file)
+    check_keys(spec, {"translate", "scale", "rotate"}, f"{where}.transform", file)
     scale = spec.get("scale", 1.0)
     if isinstance(scale, list):
-        s = _vector(scale, f"{where}.transform.scale", file)
+        s = toml_vector(scale, f"{where}.transform.scale", file)
     else:
         s = np.full(3, _number(scale, f"{where}.transform.scale", file))
     if np.any(s == 0):
@@ -85,12 +88,12 @@ def _transform(spec: Any, where: str, file: Path) -> np.ndarray:
         rot = spec["rotate"]
         if not isinstance(rot, dict):
             raise fail(file, f"{where}.transform.rotate must be a table with axis and degrees")
-        _check_keys(rot, {"axis", "degrees"}, f"{where}.transform.rotate", file)
-        axis = _vector(_require(rot, "axis", f"{where}.transform.rotate", file), f"{where}.transform.rotate.axis", file)
-        _unit(axis, f"{where}.transform.rotate.axis", file)
-        degrees = _number(_require(rot, "degrees", f"{where}.transform.rotate", file), f"{where}.transform.rotate.degrees", file)
+        check_keys(rot, {"axis", "degrees"}, f"{where}.transform.rotate", file)
+        axis = toml_vector(required_key(rot, "axis", f"{where}.transform.rotate", file), f"{where}.transform.rotate.axis", file)
+        checked_unit(axis, f"{where}.transform.rotate.axis", file)
+        degrees = _number(required_key(rot, "degrees", f"{where}.transform.rotate", file), f"{where}.transform.rotate.degrees", file)
         r = rotation_matrix(axis, degrees)
-    t = _vector(spec.get("translate", [0, 0, 0]), f"{where}.transform.translate", file)
+    t = toml_vector(spec.get("translate", [0, 0, 0]), f"{where}.transform.translate", file)
     m = np.eye(4)
     m[:3, :3] = r @ np.diag(s)
     m[:3, 3] = t
@@ -171,7 +174,7 @@ def _float32_number(value: Any, what: str, file: Path) -> float:
     return _float32(_number(value, what, file), what, file)
 
 def _unit_vector(value: Any, what: str, file: Path) -> np.ndarray:
-    return _unit(_vector(value, what, file), what, file)
+    return checked_unit(toml_vector(value, what, file), what, file)
 
 
 # The keys a material table may hold (each material lists its own in MATERIALS (kernels/integrand.py)):
@@ -213,17 +216,17 @@ def _material(spec: Any, where: str, file: Path, camera: bool = False) -> dict[s
     the camera, so ``view`` is neither required nor allowed."""
     if not isinstance(spec, dict):
         raise fail(file, f"{where} must be a table")
-    kind = _require(spec, "type", where, file)
+    kind = required_key(spec, "type", where, file)
     if kind not in MATERIALS:
         raise fail(file, f"{where}.type {kind!r} is not one of {', '.join(MATERIALS)}")
     material = MATERIALS[kind]
     if camera and "view" in spec:
         raise fail(file, f"{where}.view: a camera gives each pixel its own view (towards the camera); remove it")
-    _check_keys(spec, {"type", *material.keys} - ({"view"} if camera else set()), where, file)
+    check_keys(spec, {"type", *material.keys} - ({"view"} if camera else set()), where, file)
     out: dict[str, Any] = {"code": material.code}
     for key, (parse, default) in MATERIAL_PARAMETERS.items():
         if key in material.required and not (camera and key == "view"):
-            out[key] = parse(_require(spec, key, where, file), f"{where}.{key}", file)
+            out[key] = parse(required_key(spec, key, where, file), f"{where}.{key}", file)
         elif key in spec:
             out[key] = parse(spec[key], f"{where}.{key}", file)
         else:
@@ -233,18 +236,18 @@ def _material(spec: Any, where: str, file: Path, camera: bool = False) -> dict[s
 def _grid_points(spec: Any, where: str, file: Path) -> tuple[np.ndarray, tuple[int, int], np.ndarray]:
     if not isinstance(spec, dict):
         raise fail(file, f"{where}.grid must be a table")
-    _check_keys(spec, {"origin", "edge_u", "edge_v", "resolution"}, f"{where}.grid", file)
-    origin = _vector(_require(spec, "origin", f"{where}.grid", file), f"{where}.grid.origin", file)
-    eu = _vector(_require(spec, "edge_u", f"{where}.grid", file), f"{where}.grid.edge_u", file)
-    ev = _vector(_require(spec, "edge_v", f"{where}.grid", file), f"{where}.grid.edge_v", file)
-    res = _require(spec, "resolution", f"{where}.grid", file)
+    check_keys(spec, {"origin", "edge_u", "edge_v", "resolution"}, f"{where}.grid", file)
+    origin = toml_vector(required_key(spec, "origin", f"{where}.grid", file), f"{where}.grid.origin", file)
+    eu = toml_vector(required_key(spec, "edge_u", f"{where}.grid", file), f"{where}.grid.edge_u", file)
+    ev = toml_vector(required_key(spec, "edge_v", f"{where}.grid", file), f"{where}.grid.edge_v", file)
+    res = required_key(spec, "resolution", f"{where}.grid", file)
     if (not isinstance(res, list) or len(res) != 2
             or not all(isinstance(r, int) and not isinstance(r, bool) for r in res)):
         raise fail(file, f"{where}.grid.resolution must be two integers, got {res!r}")
     nu, nv = res
     if nu < 1 or nv < 1:
         raise fail(file, f"{where}.grid.resolution must be at least [1, 1], got {res!r}")
-    _receiver_count(nu * nv, f"{where}.grid.resolution {res!r}", file)
+    check_receiver_count(nu * nv, f"{where}.grid.resolution {res!r}", file)
     cross = np.cross(eu, ev)
     # Relative to the edges' own lengths: a grid's size is the user's choice of units.
     if not np.linalg.norm(cross) > 1e-12 * np.linalg.norm(eu) * np.linalg.norm(ev):
@@ -262,28 +265,28 @@ def _grid_points(spec: Any, where: str, file: Path) -> tuple[np.ndarray, tuple[i
 def _receiver_group(spec: Any, where: str, file: Path, default_material: dict | None) -> dict[str, Any]:
     if not isinstance(spec, dict):
         raise fail(file, f"{where} must be a table")
-    _check_keys(spec, {"points", "grid", "normal", "normals", "name", "material"}, where, file)
+    check_keys(spec, {"points", "grid", "normal", "normals", "name", "material"}, where, file)
     if ("points" in spec) == ("grid" in spec):
         raise fail(file, f"{where} needs exactly one of 'points' or 'grid'")
     grid_shape = None
     if "points" in spec:
-        points = _vectors(spec["points"], f"{where}.points", file)
+        points = toml_vectors(spec["points"], f"{where}.points", file)
         default_normal = None
     else:
         points, grid_shape, default_normal = _grid_points(spec["grid"], where, file)
     if "normal" in spec and "normals" in spec:
         raise fail(file, f"{where} has both 'normal' and 'normals'")
     if "normals" in spec:
-        normals = _vectors(spec["normals"], f"{where}.normals", file)
+        normals = toml_vectors(spec["normals"], f"{where}.normals", file)
         if len(normals) != len(points):
             raise fail(file, f"{where}.normals has {len(normals)} entries for {len(points)} points")
     elif "normal" in spec:
-        normals = np.tile(_vector(spec["normal"], f"{where}.normal", file), (len(points), 1))
+        normals = np.tile(toml_vector(spec["normal"], f"{where}.normal", file), (len(points), 1))
     elif default_normal is not None:
         normals = np.tile(default_normal, (len(points), 1))
     else:
         raise fail(file, f"{where} needs 'normal' or 'normals'")
-    normals = _unit(normals, f"{where} normal", file)
+    normals = checked_unit(normals, f"{where} normal", file)
     if "material" in spec:
         material = _material(spec["material"], f"{where}.material", file)
     elif default_material is not None:
@@ -293,12 +296,12 @@ def _receiver_group(spec: Any, where: str, file: Path, default_material: dict | 
     name = spec.get("name", where)
     if not isinstance(name, str):
         raise fail(file, f"{where}.name must be a string")
-    _coordinates(points, f"{where} receivers", file)
+    checked_coordinates(points, f"{where} receivers", file)
     return {"points": points, "normals": normals, "material": material, "name": name, "grid": grid_shape}
 
 def _receivers(doc: dict, file: Path) -> Receivers:
     default = _material(doc["material"], "[material]", file) if "material" in doc else None
-    spec = _require(doc, "receivers", "the scene", file)
+    spec = required_key(doc, "receivers", "the scene", file)
     groups_spec = spec if isinstance(spec, list) else [spec]
     if not groups_spec:
         raise fail(file, "[[receivers]] is empty")
@@ -307,7 +310,7 @@ def _receivers(doc: dict, file: Path) -> Receivers:
         for i, g in enumerate(groups_spec)
     ]
     count = [len(g["points"]) for g in groups]
-    _receiver_count(sum(count), "[[receivers]]", file)
+    check_receiver_count(sum(count), "[[receivers]]", file)
     microfacet = [grey_microfacet(g["material"], np.full(c, g["material"]["albedo"]), c, file)
                   for g, c in zip(groups, count)]
     return Receivers(
@@ -368,7 +371,7 @@ def _surface_row(material: dict[str, Any], file: Path) -> dict[str, Any]:
 def _meshes(doc: dict, file: Path, shading: bool = False) -> _Meshes:
     """The [[mesh]] tables; with ``shading`` (a camera's receivers shade), also the vertex
     normals their files carry."""
-    entries = _require(doc, "mesh", "the scene", file)
+    entries = required_key(doc, "mesh", "the scene", file)
     if not isinstance(entries, list) or not entries:
         raise fail(file, "the scene needs at least one [[mesh]]")
     vertices, triangles, emission, owner, paths, surfaces, normals = [], [], [], [], [], [], []
@@ -377,8 +380,8 @@ def _meshes(doc: dict, file: Path, shading: bool = False) -> _Meshes:
         where = f"[[mesh]] #{i + 1}"
         if not isinstance(entry, dict):
             raise fail(file, f"{where} must be a table")
-        _check_keys(entry, {"path", "emission", "transform", "name", "material", "vertex_normals"}, where, file)
-        rel = _require(entry, "path", where, file)
+        check_keys(entry, {"path", "emission", "transform", "name", "material", "vertex_normals"}, where, file)
+        rel = required_key(entry, "path", where, file)
         if not isinstance(rel, str):
             raise fail(file, f"{where}.path must be a string")
         radiance = entry.get("emission", 0.0)
@@ -405,7 +408,7 @@ def _meshes(doc: dict, file: Path, shading: bool = False) -> _Meshes:
                                               f"or set vertex_normals = false in its [[mesh]]")
             n = n / length[:, None]
         normals.append(n)
-        _coordinates(v, f"{where} ({rel}) after its transform", file)
+        checked_coordinates(v, f"{where} ({rel}) after its transform", file)
         vertices.append(v)
         triangles.append(f + offset)
         emission.append(np.full(len(f), float(radiance)))
@@ -437,10 +440,10 @@ def _corner_normals(vertices: list[np.ndarray], triangles: list[np.ndarray], nor
     return np.concatenate(out)
 
 def load_toml(file: Path, device: str = "cpu", width: int | None = None, height: int | None = None) -> Scene:
-    """The scene of the TOML scene file ``file`` on Warp device ``device`` (README.md, "Scene files");
+    """The scene of the TOML scene file ``file`` on Warp device ``device`` (docs/scene-files.md);
     ``width``/``height`` resize its camera (a scene with [receivers.camera])."""
     doc = read_toml(file)
-    _check_keys(doc, {"name", "description", "mesh", "receivers", "material"}, "the top level", file)
+    check_keys(doc, {"name", "description", "mesh", "receivers", "material"}, "the top level", file)
     name = doc.get("name", file.parent.name if file.name == "scene.toml" else file.stem)
     if not isinstance(name, str):
         raise fail(file, "name must be a string")
@@ -452,10 +455,10 @@ def load_toml(file: Path, device: str = "cpu", width: int | None = None, height:
     if camera is not None:
         receivers, notes = _camera_receivers(camera.resized(width, height, file), meshes, doc, file, str(device))
     elif width is not None or height is not None:
-        raise fail(file, "has no camera to resize: a camera scene has [receivers.camera] (README.md, \"Images\")")
+        raise fail(file, "has no camera to resize: a camera scene has [receivers.camera] (docs/images.md)")
     else:
         receivers = _receivers(doc, file)
-    return _assemble(file, lambda m: file.parent / meshes.paths[m], "give some [[mesh]] an emission > 0", name=name,
+    return assemble_scene(file, lambda m: file.parent / meshes.paths[m], "give some [[mesh]] an emission > 0", name=name,
                      vertices=meshes.vertices, triangles=meshes.triangles, emission=meshes.emission,
                      receivers=receivers, triangle_mesh=meshes.owner, mesh_names=meshes.paths,
                      description=str(doc.get("description", "")), device=str(device), path=file, notes=notes)
@@ -469,17 +472,17 @@ def _camera_spec(doc: dict, file: Path) -> Camera | None:
     spec = doc.get("receivers")
     if not isinstance(spec, dict) or "camera" not in spec:
         return None
-    _check_keys(spec, {"camera"}, "[receivers] (a camera's receivers are its pixels)", file)
+    check_keys(spec, {"camera"}, "[receivers] (a camera's receivers are its pixels)", file)
     cam = spec["camera"]
     if not isinstance(cam, dict):
         raise fail(file, "[receivers.camera] must be a table")
-    _check_keys(cam, _CAMERA_KEYS, "[receivers.camera]", file)
+    check_keys(cam, _CAMERA_KEYS, "[receivers.camera]", file)
     where = "[receivers.camera]"
-    position = _vector(_require(cam, "position", where, file), f"{where}.position", file)
-    target = _vector(_require(cam, "target", where, file), f"{where}.target", file)
-    up = _vector(cam.get("up", [0.0, 0.0, 1.0]), f"{where}.up", file)
-    fov = _number(_require(cam, "fov", where, file), f"{where}.fov", file)
-    width, height = _require(cam, "width", where, file), _require(cam, "height", where, file)
+    position = toml_vector(required_key(cam, "position", where, file), f"{where}.position", file)
+    target = toml_vector(required_key(cam, "target", where, file), f"{where}.target", file)
+    up = toml_vector(cam.get("up", [0.0, 0.0, 1.0]), f"{where}.up", file)
+    fov = _number(required_key(cam, "fov", where, file), f"{where}.fov", file)
+    width, height = required_key(cam, "width", where, file), required_key(cam, "height", where, file)
     return Camera.look_at(position, target, up, fov, width, height, file)
 
 
@@ -493,7 +496,7 @@ def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, de
     # TOML materials reflect on both sides: the normal is turned towards the camera.
     hits = cast_camera(camera, meshes.vertices, meshes.triangles, meshes.emission, meshes.owner,
                        [True] * len(meshes.paths), device, meshes.corner_normals)
-    _receiver_count(len(hits.positions), f"[receivers.camera] ({camera.width} × {camera.height})", file)
+    check_receiver_count(len(hits.positions), f"[receivers.camera] ({camera.width} × {camera.height})", file)
 
     def unmaterialled(m: int, pixels: int) -> str:
         return (f"[[mesh]] #{m + 1} ({meshes.paths[m]}) is seen by {pixels} camera pixel(s) but has no material: "

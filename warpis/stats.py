@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import ndtri, stdtrit
 
-from ..errors import WarpisError
+from .errors import WarpisError
 
 __all__ = [
     "VarianceEstimate",

@@ -16,7 +16,7 @@ fixes:
 
 Each form is a :data:`SumVarianceForm`, the ``sum_variance`` of its entry in
 ``kernels.patterns.PATTERNS``: given the weighted values ψ of one technique stream at
-any points it asks for (``theory.py`` supplies them from the Warp integrand), it returns
+any points it asks for (``quadrature.py`` supplies them from the Warp integrand), it returns
 Var(Σ_{i<m} ψ(u_i)) at every receiver with a standard error.  docs/theory.md derives each.
 """
 
@@ -34,7 +34,7 @@ from ..stats import SampleMoments
 # mixture (a technique picked at random per sample) they are the means over techniques.
 Values = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
-# Most points a form passes to ``values`` in one call (theory.py sizes its receiver
+# Most points a form passes to ``values`` in one call (quadrature.py sizes its receiver
 # chunks by it).
 MAX_POINTS_PER_CALL = 1 << 16
 
