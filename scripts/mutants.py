@@ -142,6 +142,23 @@ MUTANTS: tuple[Mutant, ...] = (
            K + "techniques.py", "add_crossing", "out.pdf = out.pdf + radiance / float(table.total[sp.receiver])",
            "out.pdf = out.pdf + 1.0 / float(table.total[sp.receiver])",
            ("tests/test_light_pdf.py",)),
+    # ------------------------------------------------------------------ sphere lights (spheres.py, techniques.py)
+    Mutant("sphere-cone-without-2pi", "a sphere light's cone solid angle loses its 2π: Ω = 1 − cos θmax, so its "
+           "pick probability and its pdf L/W are off", K + "techniques.py", "sphere_solid_angle",
+           "return wp.float64(2.0) * wp.float64(PI64) * one_minus_cos_max(p, c, r)",
+           "return one_minus_cos_max(p, c, r)", ("tests/test_sphere_lights.py",)),
+    Mutant("sphere-cone-cancels", "1 − cos θmax computed as 1 − √(1 − sin²θmax), which cancels for far spheres",
+           K + "spheres.py", "one_minus_cos_max", "return sin2 / (wp.float64(1.0) + cos_max)",
+           "return wp.float64(float(1.0) - float(cos_max))", ("tests/test_sphere_lights.py",)),
+    Mutant("sphere-samples-off-the-rim", "cone and surface samples that float32 rounding carries off the silhouette "
+           "are left there (lost)", K + "spheres.py", "into_sphere", "if roots[1] > wp.float64(0.0):",
+           "if True:", ("tests/test_sphere_lights.py",)),
+    Mutant("sphere-far-side-not-counted", "light-area's pdf counts only a sphere's near crossing",
+           K + "techniques.py", "sphere_light_pdf", "for i in range(2):", "for i in range(1):",
+           ("tests/test_sphere_lights.py",)),
+    Mutant("sphere-does-not-block", "a sphere never blocks a shadow ray", K + "spheres.py", "_crosses",
+           "return (t0 > t_min and t0 < t_max) or (t1 > t_min and t1 < t_max)", "return False",
+           ("tests/test_sphere_lights.py",)),
     # ------------------------------------------------------------------ environment lights (environment.py)
     Mutant("envmap-pdf-misses-jacobian", "the envmap pdf divides the cell's probability by ΔφΔθ, not by its solid "
            "angle Δφ(cos θ_j − cos θ_j+1): the sin θ Jacobian is lost", K + "environment.py", "environment_pdf",
@@ -307,6 +324,16 @@ MUTANTS: tuple[Mutant, ...] = (
     Mutant("resume-drops-last-row", "resume drops the last finished row of each cell", "warpis/runs/study.py",
            "_resume", "done = {c.key: previous[c.key] for c in cells", "done = {c.key: previous[c.key][:-1] for c in cells",
            ("tests/test_study.py",)),
+    # ------------------------------------------------------------------ warpis check
+    Mutant("check-pdf-tolerance-ignored", "warpis check passes a reported pdf whatever it differs by",
+           "warpis/check/checks.py", "pdf_at_sample", "passed = frac <= PDF_MISMATCH_FRACTION", "passed = True",
+           ("tests/test_check.py",)),
+    Mutant("check-family-dropped", "warpis check holds each statistical test at the run's family-wise level "
+           "(no Šidák correction)", "warpis/check/checks.py", "per_test",
+           "return sidak_threshold(self.alpha, max(1, self.tests))", "return self.alpha", ("tests/test_check.py",)),
+    Mutant("check-window-without-jacobian", "the windowed sphere's quadrature forgets the magnification's Jacobian",
+           "warpis/check/window.py", "_points", "return d, (self.dc * self.dphi / (per * per)) / jac",
+           "return d, self.dc * self.dphi / (per * per)", ("tests/test_check.py",)),
 )
 
 

@@ -155,7 +155,7 @@ def _table(header: str, table: dict[str, Any]) -> list[str]:
 def write_scene(directory: Path, meshes: list[dict[str, Any]] | None = None,
                 receivers: dict | list[dict] | None = None, material: dict | None = _DEFAULT,
                 name: str | None = "test-scene", extra: dict[str, Any] | None = None,
-                filename: str = "scene.toml") -> Path:
+                filename: str = "scene.toml", spheres: list[dict[str, Any]] | None = None) -> Path:
     """Write mesh files and a scene TOML under ``directory``; return the TOML's path.
 
     Parameters
@@ -174,6 +174,8 @@ def write_scene(directory: Path, meshes: list[dict[str, Any]] | None = None,
         The scene's ``name``; ``None`` leaves it out.
     extra
         More top-level keys, written before the tables.
+    spheres
+        ``[[sphere]]`` tables, written verbatim after the meshes.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -195,6 +197,8 @@ def write_scene(directory: Path, meshes: list[dict[str, Any]] | None = None,
             data = entry.pop("content")
             target.write_bytes(data if isinstance(data, bytes) else data.encode())
         lines += _table("[[mesh]]", entry)
+    for entry in spheres or []:
+        lines += _table("[[sphere]]", entry)
     if isinstance(receivers, dict):
         lines += _table("[receivers]", receivers)
     else:
@@ -281,6 +285,29 @@ def cli(capsys):
         return CliResult(status, captured.out, captured.err)
 
     return run
+
+
+def tessellated_veach_plates(folder: Path) -> Path:
+    """veach-plates with its sphere lights as 320-triangle icospheres (the bundled scene's
+    lights before they were analytic): triangle lights that every ray crosses twice,
+    for the tests of light pdfs over many emitter triangles.  Returns the scene file."""
+    import tomllib
+
+    source = Path(warpis.__file__).resolve().parent.parent / "meshes" / "veach-plates"
+    if not source.is_dir():
+        from warpis.scenes import resolve_scene_path
+
+        source = resolve_scene_path("veach-plates").parent
+    doc = tomllib.loads((source / "scene.toml").read_text())
+    folder.mkdir(parents=True, exist_ok=True)
+    for m in doc["mesh"]:
+        shutil.copy(source / m["path"], folder / m["path"])
+    ico = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    write_mesh(folder / "light_sphere.obj", np.asarray(ico.vertices), np.asarray(ico.faces))
+    meshes = list(doc["mesh"]) + [{"path": "light_sphere.obj", "emission": s["emission"],
+                                   "transform": {"translate": s["center"], "scale": s["radius"]}}
+                                  for s in doc["sphere"]]
+    return write_scene(folder, meshes=meshes, receivers=doc["receivers"], material=None, name="veach-plates")
 
 
 def dome_scene(folder: Path, radiance: float) -> warpis.Scene:

@@ -17,7 +17,7 @@ camera, is computed twice:
 
 * warpis: ``reference(scene, rel_error=5e-4)`` (single-technique jittered quadrature,
   32 replicas; the lit floor point by its closed form), on warpis's own reading of the
-  XML (the sphere tessellated, the rest exact);
+  XML (the sphere analytic, as Mitsuba's; everything exact);
 * Mitsuba (``scalar_rgb``): at the receivers file's points, seen from the XML's camera,
   the surface interaction of a short ray cast at the point along the view, then
   ``SAMPLES`` = 2^19 independent uniform samples (numpy, fixed seed) of Mitsuba's own
@@ -36,12 +36,10 @@ about 3σ of that receiver's estimate; elsewhere < 0.01%).  warpis's shadow ray 
 ``ray_test`` from EPS along it to EPS short of the light) and prints the estimate with
 Mitsuba's own shadow rays beside it.
 
-Tolerance: |F_warpis − F_Mitsuba| ≤ 4 sqrt(se_w² + se_m²) + TESSELLATION_ERROR |F_warpis|.
-The last term bounds warpis's one systematic departure from Mitsuba's scene: its sphere
-light is an icosphere whose area is exact and whose irradiance at 2r is within
-``TESSELLATION_ERROR`` (1e-3) of the sphere's (this scene's note says −0.0066%); added
-for every receiver, it only widens the band.  Without it a comparison fails by chance
-with the two-sided tail at 4 of the difference over its estimated stderr.  Mitsuba's
+Tolerance: |F_warpis − F_Mitsuba| ≤ 4 sqrt(se_w² + se_m²): warpis reads the scene
+exactly as Mitsuba holds it (its sphere light is an analytic sphere), so a comparison
+fails by chance with the two-sided tail at 4 of the difference over its estimated
+stderr.  Mitsuba's
 samples are bounded (Le/pdf is constant on the sphere's cone and bounded on the
 rectangle, ρ cos θ is bounded), so their mean over 2^19 samples is normal to high
 accuracy; warpis's stderr comes from 32 replicas (Student's t, 31 degrees of freedom)
@@ -59,8 +57,9 @@ Also at the same receivers (deterministic, each kept small):
   the material of the shape it lies on;
 * f: ``evaluate_integrand`` (Le × ρ × cos θ × visibility) against Mitsuba's Le ×
   ``bsdf.eval``, visibility along the segment, in directions Mitsuba's emitter sampling
-  draws: those towards the rectangle and those well inside the sphere's outline (within
-  0.98 of its angular radius, so that they hit warpis's tessellation too): relative error
+  draws: those towards the rectangle and those within 0.98 of the sphere's angular
+  radius (a float32 direction at the very outline may meet the sphere on one side and
+  miss it on the other): relative error
   ≤ 1e-4 and the same samples shadowed on both sides (and, on the way, Mitsuba's own
   ``test_visibility=True`` is its spawn_ray_to shadow ray, as the estimate assumes);
 * the pdf of warpis's ``bsdf`` technique (``direction_pdf``) against ``bsdf.pdf``, in
@@ -73,7 +72,6 @@ Also at the same receivers (deterministic, each kept small):
 from __future__ import annotations
 
 import math
-import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,7 +85,6 @@ import warpis  # noqa: E402
 from warpis.analysis.reference import reference  # noqa: E402
 from warpis.kernels.integrand import evaluate_integrand  # noqa: E402
 from warpis.kernels.techniques import direction_pdf  # noqa: E402
-from warpis.scenes.mitsuba import TESSELLATION_ERROR  # noqa: E402
 
 DATA = Path(__file__).parent / "data" / "against_mitsuba"
 SCENE = DATA / "scene.xml"
@@ -108,7 +105,7 @@ PDF_DIRECTIONS = 512  # directions per receiver for the pdf comparison
 F_RTOL = 1e-4
 PDF_RTOL = 1e-4
 BECKMANN_G1_FIT = 3.5e-3  # Walter's rational G1 against the erf form (microfacet.py)
-INSIDE_SPHERE = 0.98  # of its angular radius: directions that hit the tessellation too
+INSIDE_SPHERE = 0.98  # of its angular radius: directions clear of the outline's rounding
 EPS = 1e-3  # the segment to a light sample: this much off its start, this fraction off its end
 
 
@@ -213,13 +210,12 @@ def test_receivers_are_mitsubas(pair):
         np.testing.assert_allclose(rx.view[i], r.view, atol=1e-6, err_msg=f"receiver {i}")
         np.testing.assert_allclose(np.array(r.si.to_world(r.si.wi)), r.view, atol=1e-6)
         assert rx.material_name(i) == MATERIAL[r.group], (i, r.group)
-    pattern = r"sphere-light: sphere tessellated .* irradiance error ([-+\d.e]+)%"
-    (error,) = [float(m.group(1)) / 100.0 for m in (re.search(pattern, n) for n in pair.scene.notes) if m]
-    assert abs(error) <= TESSELLATION_ERROR, pair.scene.notes
+    assert pair.scene.spheres is not None and len(pair.scene.sphere_lights) == 1  # analytic, as Mitsuba's
+    assert not any("tessellated" in n for n in pair.scene.notes), pair.scene.notes
 
 
 def test_direct_radiance_matches_mitsuba(pair):
-    """F per receiver within 4 combined standard errors + the tessellation bound (see the docstring)."""
+    """F per receiver within 4 combined standard errors (see the docstring)."""
     refs = reference(pair.scene, rel_error=REL_ERROR)
     rows, bad, zs = [], [], []
     for i, (ref, r) in enumerate(zip(refs, pair.receivers)):
@@ -227,7 +223,7 @@ def test_direct_radiance_matches_mitsuba(pair):
         sigma = math.hypot(ref.stderr, m.se)
         z = (ref.value - m.mean) / sigma
         zs.append(z)
-        tolerance = Z * sigma + TESSELLATION_ERROR * abs(ref.value)
+        tolerance = Z * sigma
         own_z = (ref.value - m.own) / math.hypot(ref.stderr, m.own_se)
         rows.append(f"  {i} {r.group:<14} warpis {ref.value:.6f} ± {ref.stderr:.1e}  mitsuba {m.mean:.6f} ± "
                     f"{m.se:.1e}  z {z:+.2f}  |Δ|/tol {abs(ref.value - m.mean) / tolerance:.2f}  "

@@ -63,6 +63,7 @@ OCCLUDERS = {
     "plastic": '<bsdf type="plastic"/>',
     "principled": '<bsdf type="principled"/>',
     "principledthin": '<bsdf type="principledthin"/>',
+    "hair": '<bsdf type="hair"/>',  # Mitsuba cannot read back its unset sigma_a: warpis must not need it
     "null": '<bsdf type="null"/>',
     "mask": '<bsdf type="mask"><float name="opacity" value="0.3"/><bsdf type="diffuse"/></bsdf>',
     "mask-0": '<bsdf type="mask"><float name="opacity" value="0"/><bsdf type="diffuse"/></bsdf>',

@@ -29,7 +29,8 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import BUNDLED, CAMERA_BUNDLED, MITSUBA_BUNDLED, floor_entry, light_entry, quad, run_warpis, write_mesh, write_scene
+from conftest import (BUNDLED, CAMERA_BUNDLED, MITSUBA_BUNDLED, floor_entry, light_entry, quad, run_warpis,
+                      tessellated_veach_plates, write_mesh, write_scene)
 
 import warpis
 from warpis.errors import WarpisError
@@ -40,13 +41,14 @@ from warpis.scenes import load_scene
 MESHES = Path(str(resources.files("warpis.meshes")))
 
 # Hand-counted from meshes/*/: (triangles, emitter triangles, receivers, emitter area, Σ L·A).
-# veach-plates' spheres are tessellated, so its area and power are derived from the
-# sphere mesh's own area (see test_bundled_counts_and_totals).
+# veach-plates' lights are four analytic spheres of radii 0.03, 0.1, 0.3, 0.9 and
+# radiance 0.81/r²: each has area 4πr² and power 4π · 0.81.
+VEACH_AREA = 4 * math.pi * (0.03**2 + 0.1**2 + 0.3**2 + 0.9**2)
 EXPECTED = {
     "occluded-quad": (16, 2, 8, 0.5, 5.0),
     "two-lights": (18, 4, 8, 0.01 + 9.0, 2000 * 0.01 + 2 * 9.0),
     "heavy-occluder": (81924, 2, 8, 0.36, 3.6),
-    "veach-plates": (1288, 1280, 16, None, None),
+    "veach-plates": (8, 0, 16, VEACH_AREA, 4 * 4 * math.pi * 0.81),
 }
 
 
@@ -91,10 +93,12 @@ def test_bundled_counts_and_totals(bundled_scene):
             in_mesh = s.triangle_mesh[s.emitters] == i
             assert in_mesh.sum() == len(m.faces)
             np.testing.assert_allclose(s.emitter_areas[in_mesh].sum(), m.area * scale**2, rtol=1e-9)
-    if area is not None:
-        # the OBJ files store 6-7 significant digits
-        np.testing.assert_allclose(expect_area, area, rtol=1e-6)
-        np.testing.assert_allclose(expect_power, power, rtol=1e-6)
+    for ball in doc.get("sphere", []):
+        expect_area += 4 * math.pi * ball["radius"] ** 2
+        expect_power += ball.get("emission", 0.0) * 4 * math.pi * ball["radius"] ** 2
+    # the OBJ files store 6-7 significant digits
+    np.testing.assert_allclose(expect_area, area, rtol=1e-6)
+    np.testing.assert_allclose(expect_power, power, rtol=1e-6)
     np.testing.assert_allclose(s.total_emitter_area, expect_area, rtol=1e-9)
     np.testing.assert_allclose(s.total_power, expect_power, rtol=1e-9)
     summary = s.summary()
@@ -103,14 +107,15 @@ def test_bundled_counts_and_totals(bundled_scene):
 
 
 def test_emitter_cdfs(bundled_scene):
-    """The area and power CDFs have E + 1 entries, start at 0, end at exactly 1, never
-    decrease, and their steps are each emitter triangle's share of area and of power."""
+    """The area and power CDFs have E + L + 1 entries, start at 0, end at exactly 1, never
+    decrease, and their steps are each light's share (emitter triangles, then sphere
+    lights) of area and of power."""
     s = bundled_scene
-    areas = s.emitter_areas
-    power = areas * s.emitter_radiance
+    areas = s.light_areas
+    power = areas * s.light_radiance
     for name, weights in (("area_cdf", areas), ("power_cdf", power)):
         cdf = getattr(upload(s).data, name).numpy().astype(np.float64)
-        assert cdf.shape == (s.emitter_count + 1,), name
+        assert cdf.shape == (s.light_count + 1,), name
         assert cdf[0] == 0.0 and cdf[-1] == 1.0, name
         assert np.all(np.diff(cdf) >= 0.0), name
         np.testing.assert_allclose(np.diff(cdf), weights / weights.sum(), atol=1e-6, err_msg=name)
@@ -667,14 +672,24 @@ def shading_rays(scene: warpis.Scene, receiver: int, targets: np.ndarray):
     return origin, d
 
 
-def test_brute_force_cull_drops_no_hit(loaded_scenes):
+@pytest.fixture(scope="module")
+def triangle_scenes(loaded_scenes, tmp_path_factory):
+    """The bundled scenes, veach-plates with its sphere lights as 320-triangle icospheres:
+    the brute-force triangle casts below compare triangles (test_sphere_lights.py holds
+    the analytic spheres)."""
+    out = dict(loaded_scenes)
+    out["veach-plates"] = load_scene(tessellated_veach_plates(tmp_path_factory.mktemp("veach-tri")))
+    return out
+
+
+def test_brute_force_cull_drops_no_hit(triangle_scenes):
     """The bounding-sphere cull of the brute-force reference is conservative: with and
     without it, the same rays give the same first hits, distances, facings and
     ambiguity flags (all rays of occluded-quad and veach-plates' first plate, 16 rays
     from an umbra and a penumbra receiver of heavy-occluder)."""
     for name, receivers, count in (("occluded-quad", range(8), RANDOM_TARGETS),
                                    ("veach-plates", range(4), 60), ("heavy-occluder", (3, 4), 16)):
-        s = loaded_scenes[name]
+        s = triangle_scenes[name]
         centres, points, _ = emitter_targets(s, count, seed=99)
         tris = s.triangle_vertices()
         for r in receivers:
@@ -684,7 +699,7 @@ def test_brute_force_cull_drops_no_hit(loaded_scenes):
                 np.testing.assert_array_equal(a, b, err_msg=f"{name} receiver {r}")
 
 
-def test_warp_ray_cast_matches_brute_force(bundled_scene):
+def test_warp_ray_cast_matches_brute_force(bundled_scene, triangle_scenes):
     """From every receiver's shading point, rays to each emitter's centre and to 200
     fixed random points on the emitters find the same first hit through the Warp mesh
     as a float64 brute-force Möller–Trumbore over all triangles: same face (or both
@@ -696,7 +711,7 @@ def test_warp_ray_cast_matches_brute_force(bundled_scene):
     coordinates (relative to the triangle's size), i.e. when it passes within 1e-5 of a
     triangle edge, such as a quad light's diagonal through its centre; such rays may
     legitimately hit either neighbour.  At most 5% of the rays may be left out."""
-    s = bundled_scene
+    s = triangle_scenes[bundled_scene.name]  # veach-plates: its tessellated twin
     centres, points, _ = emitter_targets(s, RANDOM_TARGETS, seed=12345)
     targets = np.vstack([centres, points])
     tris = s.triangle_vertices()
@@ -758,20 +773,16 @@ def test_shadow_rays_hit_what_the_scene_says(name, loaded_scenes):
 
 
 def test_veach_plates_see_every_light(loaded_scenes):
-    """In veach-plates every plate receiver's ray to each light sphere's centre hits the
-    front of that sphere (nothing in between), at the distance to the sphere's surface."""
+    """In veach-plates every plate receiver's ray to each light sphere's centre meets no
+    triangle and sees that sphere's front: its radiance."""
     s = loaded_scenes["veach-plates"]
-    centres, _, meshes = emitter_targets(s, 0, seed=0)
-    doc = _toml(s)
-    radii = np.array([doc["mesh"][m]["transform"]["scale"] for m in meshes])
+    assert s.emitter_count == 0 and len(s.sphere_lights) == 4
+    centres = s.spheres.centers[s.sphere_lights]
     for r in range(len(s.receivers)):
         origin, d = shading_rays(s, r, centres)
-        face, dist, sign, radiance = warp_cast(s, np.tile(origin, (len(d), 1)), d)
-        np.testing.assert_array_equal(s.triangle_mesh[face], meshes)
-        assert np.all(sign > 0) and np.all(radiance > 0)
-        to_centre = np.linalg.norm(centres - origin, axis=1)
-        # a tessellated unit sphere lies between its inscribed and circumscribed radii
-        assert np.all(dist <= to_centre - 0.9 * radii) and np.all(dist >= to_centre - radii * 1.0001)
+        face, _, _, radiance = warp_cast(s, np.tile(origin, (len(d), 1)), d)
+        assert np.all(face < 0)
+        np.testing.assert_array_equal(radiance, s.spheres.emission[s.sphere_lights].astype(np.float32))
 
 
 # An example value for every key a material table may hold (scene.MATERIAL_PARAMETERS).
@@ -973,7 +984,7 @@ def test_device_cache_builds_once_per_digest_and_device(tmp_path, monkeypatch):
     assert builds == ["cpu"]
     other = warpis.Scene.from_arrays(**_arrays(emission=[0.0, 0.0, 10.0, 20.0]))
     assert upload(other).data.mesh != upload(scenes[0]).data.mesh and builds == ["cpu", "cpu"]
-    allowed = {f.name for f in fields(warpis.Scene)} | {"digest", "emitters", "emitter_areas"}
+    allowed = {f.name for f in fields(warpis.Scene)} | {"digest", "emitters", "emitter_areas", "sphere_lights"}
     for s in scenes:
         assert set(vars(s)) <= allowed, set(vars(s)) - allowed
 

@@ -62,7 +62,7 @@ import numpy as np
 import pytest
 import trimesh
 import warp as wp
-from conftest import concat_meshes, sky_environment, write_scene
+from conftest import concat_meshes, sky_environment, tessellated_veach_plates, write_scene
 from test_light_pdf import ray_crossings, triangle_solid_angles
 from scipy.stats import chi2
 
@@ -123,6 +123,8 @@ def scenes(tmp_path_factory):
                 scene = load_scene(_horizon_scene(tmp_path_factory.mktemp("horizon-quad")))
             elif name == "sky":
                 scene = _sky_scene()
+            elif name == "veach-plates":  # its lights as triangles: the analytic ones are test_sphere_lights's
+                scene = load_scene(tessellated_veach_plates(tmp_path_factory.mktemp("veach-plates")))
             else:
                 scene = load_scene(name)
             self[name] = scene

@@ -42,6 +42,9 @@ MAX_VALUE = 1e18
 # Largest coordinate magnitude: squared distances and triangle areas (~ coordinate²)
 # must stay finite and normal in float32.
 MAX_COORDINATE = 1e15
+# An analytic sphere's radius relative to its centre's distance from the origin: below
+# 2^-16 (128 float32 ulps) a ray's float32 origin and direction cannot resolve it.
+SPHERE_MIN_RELATIVE_RADIUS = 2.0**-16
 
 
 def _integral(value: Any) -> int | None:

@@ -1,7 +1,9 @@
-"""What the measurements are held against: statistics, closed forms, references, theory.
+"""What the measurements are held against: closed forms, references, quadrature, theory.
 
-* ``stats`` — sample moments, the fourth-moment variance interval, slopes;
 * ``closed_form`` — Lambert's irradiance from polygons, an occlusion-free oracle;
 * ``reference`` — F at a receiver to a stated precision;
+* ``quadrature`` — dense u-space evaluation: exact variances, moments, the optimal α;
 * ``theory`` — every predicted-variance form of the seed (``FORMS``), printed and exact.
+
+Sample moments and intervals are :mod:`warpis.stats`'s (the ground floor: the kernels use them).
 """

@@ -483,3 +483,88 @@ def irradiance_closed_form(x: np.ndarray, n: np.ndarray, all_tris: np.ndarray,
     values = triangle_irradiance(x, n, t_all, le)
     blocked = pyramid_blockers(x, n, t_all, le != 0.0, tol)
     return values, ~blocked
+
+
+# --------------------------------------------------------------------------- analytic spheres
+
+
+def sphere_light_boxes(centers: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(12 L, 3, 3) the faces of the cube around each sphere (half-side its radius), wound
+    outwards: a ray from outside a cube that meets its sphere enters the cube first,
+    through a face that faces the ray's origin, so the pyramids to those faces
+    (:func:`pyramid_blockers`) hold every ray that can reach the sphere up to the cube."""
+    box = unit_cube()
+    c = np.asarray(centers, np.float64).reshape(-1, 3)
+    r = np.asarray(radii, np.float64).reshape(-1)
+    return (c[:, None, None, :] + r[:, None, None, None] * box[None]).reshape(-1, 3, 3)
+
+
+def unit_cube() -> np.ndarray:
+    """(12, 3, 3) the unit cube [−1, 1]³ as triangles wound outwards."""
+    out = []
+    for axis in range(3):
+        u, v = (axis + 1) % 3, (axis + 2) % 3
+        for sign in (-1.0, 1.0):
+            corners = []
+            for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                p = np.zeros(3)
+                p[axis], p[u], p[v] = sign, a, b
+                corners.append(p)
+            quad = [corners[0], corners[1], corners[2], corners[3]] if sign > 0 else \
+                [corners[0], corners[3], corners[2], corners[1]]
+            out += [[quad[0], quad[1], quad[2]], [quad[0], quad[2], quad[3]]]
+    return np.array(out)
+
+
+def _cones(x: np.ndarray, centers: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, S, 3) unit axes, (R, S) half-angles and (R, S) inside flags of the cones the
+    spheres subtend from each point (a point inside a sphere: half-angle π)."""
+    d = centers[None] - x[:, None]
+    dist = np.linalg.norm(d, axis=2)
+    inside = dist <= radii[None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        half = np.where(inside, np.pi, np.arcsin(np.clip(radii[None] / dist, 0.0, 1.0)))
+        axes = d / dist[..., None]
+    return np.nan_to_num(axes), half, inside
+
+
+def sphere_occlusion(x: np.ndarray, tris: np.ndarray, emission: np.ndarray, centers: np.ndarray, radii: np.ndarray,
+                     lights: np.ndarray) -> np.ndarray:
+    """(R,) whether a sphere may block some light of each receiver, or the receiver may
+    not see a sphere light whole (conservative: True can be a false alarm, False is
+    sure).  A light's directions from x lie in a cone: a sphere light's own, an emitter
+    triangle's bounding cone (about the direction to its centroid, to its farthest
+    corner).  A sphere that is not that light blocks none of them when its own cone is
+    apart (angular distance ≥ the sum of the half-angles); a point inside a sphere, or a
+    scene triangle whose box meets a sphere light's cube (it could stand between the
+    cube and the sphere, where the pyramids end), counts as blocked."""
+    x = np.asarray(x, np.float64)
+    axes, half, inside = _cones(x, centers, radii)
+    blocked = inside.any(axis=1)
+    cubes = np.concatenate([centers[lights] - radii[lights, None], centers[lights] + radii[lights, None]], axis=1) \
+        if len(lights) else np.zeros((0, 6))
+    if len(tris) and len(cubes):
+        lo, hi = tris.min(axis=1), tris.max(axis=1)
+        meets = ((lo[:, None] <= cubes[None, :, 3:]) & (hi[:, None] >= cubes[None, :, :3])).all(axis=2)
+        if meets.any():
+            return np.ones(len(x), bool)
+    light_axes, light_half = [axes[:, lights]], [half[:, lights]]
+    light_index = [lights]
+    emitters = np.flatnonzero(np.asarray(emission) > 0)
+    if len(emitters):
+        t = tris[emitters]
+        centroid = t.mean(axis=1)
+        to_c = centroid[None] - x[:, None]
+        to_c /= np.linalg.norm(to_c, axis=2, keepdims=True)
+        to_v = t[None] - x[:, None, None]
+        to_v /= np.linalg.norm(to_v, axis=3, keepdims=True)
+        spread = np.arccos(np.clip(np.einsum("resj,rej->res", to_v, to_c), -1.0, 1.0)).max(axis=2)
+        light_axes.append(to_c)
+        light_half.append(spread)
+        light_index.append(np.full(len(emitters), -1))
+    la, lh = np.concatenate(light_axes, axis=1), np.concatenate(light_half, axis=1)
+    li = np.concatenate(light_index)
+    apart = np.arccos(np.clip(np.einsum("rlj,rsj->rls", la, axes), -1.0, 1.0))
+    overlap = apart < lh[:, :, None] + half[:, None, :]
+    overlap &= li[None, :, None] != np.arange(len(radii))[None, None, :]  # a light does not block itself
+    return blocked | overlap.any(axis=(1, 2))

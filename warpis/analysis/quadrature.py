@@ -25,6 +25,9 @@ f(T_k(u)) and the pdf of every technique of the set at T_k(u).  From those:
   same at a fixed density, every receiver of a launch at the same points.
 * **Reference moments** (``moments``): I, I_k, E_ḡ[h²], E_{g_k}[(f/g_k)²], ∫ f g_k,
   ∫ f² g_k, ∫ f², ∫ 1/g_k, and the stratum integrals J_ik.
+
+The seed's equations built from these are :mod:`warpis.analysis.theory`'s.
+
 Accuracy: each quantity is computed from R independent replicas of the jittered points.
 Block variances use E[Q] − E[P]² with E[P]² estimated from *pairs of different replicas*,
 which is unbiased; the standard error comes from a jackknife over replicas.  For one
@@ -699,8 +702,11 @@ def moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int =
     u = jittered_points(blocks, sub, REPLICAS, rng).reshape(-1, 2)
     shape = (REPLICAS, -1)
     i_k, e_is2, fg, f2g, e_h2 = [], [], [], [], []
+    f2_mixture = np.zeros(len(u))
     for k, t in enumerate(techniques):
         f, pdf = evaluate(scene, receiver, techniques, k, u)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f2_mixture += np.where(f > 0, f * f / pdf.sum(axis=1), 0.0)
         h = weighted_values("balance", k, f, pdf)
         w = weighted_values("single", k, f, pdf)
         i_k.append(_mean_estimate(h.reshape(shape)))
@@ -709,10 +715,16 @@ def moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int =
         fg.append(_mean_estimate(f.reshape(shape)))
         f2g.append(_mean_estimate((f * f).reshape(shape)))
     e_hbar2 = _mean_estimate(np.mean(e_h2, axis=0))
-    # ∫ f² = E_light[f²/g]: every light technique covers the support of f.
-    f, pdf = evaluate(scene, receiver, ("light-area",), 0, u)
-    w = weighted_values("single", 0, f, pdf)
-    int_f2 = _mean_estimate((w * f).reshape(shape))
+    if scene.environment is None and scene.light_count:
+        # ∫ f² = E_light[f²/g]: light-area covers the support of f when all light comes
+        # from emitter triangles and spheres.
+        f, pdf = evaluate(scene, receiver, ("light-area",), 0, u)
+        w = weighted_values("single", 0, f, pdf)
+        int_f2 = _mean_estimate((w * f).reshape(shape))
+    else:
+        # An environment: ∫ f² = Σ_k E_{g_k}[f² / Σ_j g_j] over the set itself, which covers
+        # the support of f (every set that estimates F does: techniques.check_lights).
+        int_f2 = _mean_estimate(f2_mixture.reshape(shape))
     n_g = len(techniques)
     big_i = Estimate(sum(e.value for e in i_k) / n_g, math.sqrt(sum(e.stderr**2 for e in i_k)) / n_g, u.size)
     return Moments(tuple(techniques), big_i, i_k, e_hbar2, e_is2, fg, f2g, int_f2,

@@ -1,7 +1,9 @@
 """Ground truth F(x) per receiver: Lambert's closed form where exact, dense quadrature otherwise.
 
-The closed form (``closed_form.triangle_irradiance``) is exact for irradiance and
-lambert receivers when no scene triangle meets any receiver–emitter pyramid.  Elsewhere
+The closed form (``closed_form.triangle_irradiance``, and ``scenes.lambert.sphere_irradiance``
+for sphere lights) is exact for irradiance and lambert receivers when no scene triangle
+meets any receiver–emitter pyramid (a sphere light's: the pyramids to the faces of a
+cube around it) and no sphere enters any light's cone (``closed_form.sphere_occlusion``).  Elsewhere
 (occluders, Phong receivers) F is integrated by dense stratified sampling with the same
 Warp integrand, as ``replicas`` independent jittered estimates whose spread gives the
 standard error (the mean of the replicas over their standard error follows Student's t
@@ -48,7 +50,8 @@ from ..kernels.techniques import TECHNIQUES
 from ..limits import count as check_count
 from ..limits import seed as check_seed
 from ..scenes import Scene
-from .closed_form import DEFAULT_REL_TOL, pyramid_blockers, triangle_irradiance
+from ..scenes.lambert import sphere_irradiance
+from .closed_form import DEFAULT_REL_TOL, pyramid_blockers, sphere_light_boxes, sphere_occlusion, triangle_irradiance
 
 QUADRATURE_SAMPLES = 4096
 QUADRATURE_REPLICAS = 32
@@ -116,7 +119,7 @@ def quadrature_estimator(scene: Scene, receiver: int) -> str:
 def _lights(scene: Scene) -> tuple[str, ...]:
     """The light techniques that together cover every emitter of ``scene``: light-solid-angle
     for its emitter triangles, envmap for its environment."""
-    return (("light-solid-angle",) if scene.emitter_count else ()) + \
+    return (("light-solid-angle",) if scene.light_count else ()) + \
         (("envmap",) if scene.environment is not None else ())
 
 
@@ -239,6 +242,10 @@ def _lambert(scene: Scene, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rx = scene.receivers
     # The integrand shades at the receiver position x itself (no offset along n).
     values = triangle_irradiance(rx.positions[idx], rx.normals[idx], scene.triangle_vertices(), scene.emission)
+    if scene.spheres is not None:
+        s = scene.spheres
+        values = values + sphere_irradiance(rx.positions[idx], rx.normals[idx], s.centers, s.radii, s.emission,
+                                            s.inward)
     if scene.environment is not None:  # a scale only: F itself is never this (see _unblocked)
         values = values + scene.environment.irradiance(rx.normals[idx])
     diffuse = np.zeros(len(idx), bool)
@@ -265,6 +272,16 @@ def _unblocked(scene: Scene, idx: np.ndarray, among: np.ndarray, progress: Progr
         return out
     rx, sel = scene.receivers, idx[among]
     tris, emits = scene.triangle_vertices(), scene.emission != 0.0
+    spheres = scene.spheres
+    if spheres is not None:
+        # Sphere lights get pyramids to the faces of a cube around each; a sphere in any
+        # light's cone, or a triangle inside a light's cube, sends the receiver to the
+        # quadrature (closed_form.sphere_occlusion).
+        lights = scene.sphere_lights
+        cubes = sphere_light_boxes(spheres.centers[lights], spheres.radii[lights])
+        near = sphere_occlusion(rx.positions[sel], tris, scene.emission, spheres.centers, spheres.radii, lights)
+        tris = np.concatenate([tris, cubes])
+        emits = np.concatenate([emits, np.ones(len(cubes), bool)])
     pts = np.concatenate([tris.reshape(-1, 3), rx.positions[sel]], axis=0)
     tol = DEFAULT_REL_TOL * float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
     if stage is not None:
@@ -273,6 +290,8 @@ def _unblocked(scene: Scene, idx: np.ndarray, among: np.ndarray, progress: Progr
     for start in range(0, len(sel), CLOSED_FORM_CHUNK):
         part = sel[start:start + CLOSED_FORM_CHUNK]
         clear[start:start + len(part)] = ~pyramid_blockers(rx.positions[part], rx.normals[part], tris, emits, tol)
+        if spheres is not None:
+            clear[start:start + len(part)] &= ~near[start:start + len(part)]
         if progress is not None:
             progress(start + len(part), len(sel))
     out[among] = clear

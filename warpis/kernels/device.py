@@ -67,14 +67,27 @@ class SceneData:
     emitter_slab: wp.array(dtype=wp.float32)  # self-hit slab height anywhere on it (integrand.py)
     emitter_lower: wp.vec3  # bounds of all emitter triangles, widened as the emitter BVH's boxes
     emitter_upper: wp.vec3
-    area_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1
-    power_cdf: wp.array(dtype=wp.float32)  # E + 1 entries, 0 … 1 (radiance × area)
-    total_area: wp.float32
-    total_power: wp.float32  # Σ radiance × area
-    emitter_count: wp.int32
-    # 1 when every emitter triangle lies in one plane facing one way: a ray then crosses
-    # the emitters at most once, so a light sample's own point is its only crossing.
+    # The lights the light techniques pick from: the E emitter triangles, then the L
+    # emitting spheres (light k ≥ E is sphere sphere_light[k − E]).
+    area_cdf: wp.array(dtype=wp.float32)  # E + L + 1 entries, 0 … 1
+    power_cdf: wp.array(dtype=wp.float32)  # E + L + 1 entries, 0 … 1 (radiance × area)
+    total_area: wp.float32  # of every light
+    total_power: wp.float32  # Σ radiance × area over every light
+    emitter_count: wp.int32  # E
+    light_count: wp.int32  # E + L
+    # 1 when every emitter triangle lies in one plane facing one way and no sphere emits:
+    # a ray then crosses the emitters at most once, so a light sample's own point is its
+    # only crossing.
     planar_emitters: wp.int32
+    # Analytic spheres (spheres.py): float64, so that a sphere far from the origin or
+    # seen from just above it keeps its cone exact.  One unused row when there is none.
+    sphere_center: wp.array(dtype=wp.vec3d)
+    sphere_radius: wp.array(dtype=wp.float64)
+    sphere_emission: wp.array(dtype=wp.float32)  # radiance of its front, 0: no light
+    sphere_inward: wp.array(dtype=wp.int32)  # 1: its front is the inside
+    sphere_count: wp.int32
+    sphere_bvh: wp.uint64  # bounds of the spheres, read beyond spheres.FEW_SPHERES
+    sphere_light: wp.array(dtype=wp.int32)  # L entries: the sphere of light E + j
     # roughplastic's precomputed transmittance (and internal reflectance) per distinct
     # (distribution, alpha, eta) of the receivers: microfacet.plastic_table rows.
     plastic_table: wp.array2d(dtype=wp.float32)
@@ -115,6 +128,7 @@ class DeviceScene:
     slab: np.ndarray  # (R,) float64, read-only: self-hit slab height of each receiver
     mesh: wp.Mesh  # data.mesh is its id: the struct does not keep it alive
     emitter_bvh: wp.Bvh  # likewise data.emitter_bvh
+    sphere_bvh: wp.Bvh  # and data.sphere_bvh
     _derived: dict[str, Any] = field(default_factory=dict, repr=False)
     _lock: Any = field(default_factory=threading.RLock, repr=False)
 
@@ -373,8 +387,8 @@ def plastic_rows(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return table, rows
 
 
-def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, wp.Bvh]:
-    """The SceneData struct of ``scene`` on the current device, with its mesh and BVH."""
+def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, wp.Bvh, wp.Bvh]:
+    """The SceneData struct of ``scene`` on the current device, with its mesh and BVHs."""
     points = wp.array(scene.vertices.astype(np.float32), dtype=wp.vec3)
     indices = wp.array(scene.triangles.reshape(-1).astype(np.int32), dtype=wp.int32)
     mesh = wp.Mesh(points=points, indices=indices)
@@ -400,17 +414,45 @@ def _scene_data(scene: Scene, plastic_table: np.ndarray) -> tuple[Any, wp.Mesh, 
     normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
     d.emitter_normal = wp.array(normals.astype(np.float32), dtype=wp.vec3)
     d.emitter_slab = wp.array(emitter_slabs(scene), dtype=wp.float32)
-    d.area_cdf = wp.array(_cdf(scene.emitter_areas), dtype=wp.float32)
-    d.power_cdf = wp.array(_cdf(scene.emitter_areas * scene.emitter_radiance), dtype=wp.float32)
+    d.area_cdf = wp.array(_cdf(scene.light_areas), dtype=wp.float32)
+    d.power_cdf = wp.array(_cdf(scene.light_areas * scene.light_radiance), dtype=wp.float32)
     d.total_area = float(scene.total_emitter_area)
     d.total_power = float(scene.total_power)
     d.emitter_count = int(scene.emitter_count)
+    d.light_count = int(scene.light_count)
     d.emitter_lower = wp.vec3(*lower_all.astype(np.float32))
     d.emitter_upper = wp.vec3(*upper_all.astype(np.float32))
-    d.planar_emitters = int(planar_emitters(scene.triangle_vertices(scene.emitters)))
+    d.planar_emitters = int(len(scene.sphere_lights) == 0 and planar_emitters(scene.triangle_vertices(scene.emitters)))
     d.plastic_table = wp.array(plastic_table, dtype=wp.float32)
     d.environment = environment_data(scene)
-    return d, mesh, emitter_bvh
+    sphere_bvh = _sphere_data(scene, d)
+    return d, mesh, emitter_bvh, sphere_bvh
+
+
+def _sphere_data(scene: Scene, d: Any) -> wp.Bvh:
+    """Fill the sphere fields of ``d``; the spheres' BVH (one empty box for none)."""
+    spheres = scene.spheres
+    if spheres is None:
+        centers, radii, emission, inward = np.zeros((1, 3)), np.ones(1), np.zeros(1), np.zeros(1, np.int32)
+    else:
+        centers, radii, emission, inward = spheres.centers, spheres.radii, spheres.emission, spheres.inward
+    d.sphere_center = wp.array(np.ascontiguousarray(centers, np.float64), dtype=wp.vec3d)
+    d.sphere_radius = wp.array(np.ascontiguousarray(radii, np.float64), dtype=wp.float64)
+    d.sphere_emission = wp.array(np.asarray(emission, np.float32), dtype=wp.float32)
+    d.sphere_inward = wp.array(np.asarray(inward, np.int32), dtype=wp.int32)
+    d.sphere_count = 0 if spheres is None else len(spheres)
+    lights = scene.sphere_lights
+    d.sphere_light = wp.array(lights if len(lights) else np.zeros(1, np.int32), dtype=wp.int32)
+    # float32 boxes widened past the float64 sphere by its own rounding and a little more:
+    # a box may hold more than its sphere, never less.
+    pad = 1e-5 * radii + 2.0**-20 * (np.abs(centers).max(axis=1) + radii)
+    lower = (centers - (radii + pad)[:, None]).astype(np.float32)
+    upper = (centers + (radii + pad)[:, None]).astype(np.float32)
+    if spheres is None:
+        lower, upper = np.zeros((1, 3), np.float32), np.zeros((1, 3), np.float32)
+    bvh = wp.Bvh(wp.array(lower, dtype=wp.vec3), wp.array(upper, dtype=wp.vec3))
+    d.sphere_bvh = bvh.id
+    return bvh
 
 
 def environment_data(scene: Scene) -> Any:
@@ -502,8 +544,8 @@ def _build(scene: Scene, device: str) -> DeviceScene:
     """Upload ``scene`` to ``device``: its mesh, emitter BVH, structs and slabs."""
     with wp.ScopedDevice(device):
         table, rows = plastic_rows(scene)
-        d, mesh, emitter_bvh = _scene_data(scene, table)
+        d, mesh, emitter_bvh, sphere_bvh = _scene_data(scene, table)
         rd = _receiver_data(scene, d, rows)
     slab = rd.slab.numpy().astype(np.float64)
     slab.flags.writeable = False
-    return DeviceScene(device, d, rd, slab, mesh, emitter_bvh)
+    return DeviceScene(device, d, rd, slab, mesh, emitter_bvh, sphere_bvh)

@@ -1,7 +1,8 @@
 """The direct-illumination integrand f(ω) at a receiver, as a Warp function.
 
 ``f(ω) = Le(ω) · ρ(ω) · max(0, n·ω)``, where Le is the radiance of the front face of
-the first triangle the ray (p, ω) hits (0 for a non-emitter or a back face: one-sided
+the first surface the ray (p, ω) hits, a triangle or an analytic sphere (:mod:`.spheres`)
+(0 for a non-emitter or a back face: one-sided
 emission, which is also how visibility V enters), and ρ is 1 (irradiance), albedo/π
 (lambert), the energy-normalised Phong lobe albedo·(e+2)/(2π)·max(0, cos α)^e about
 the mirror direction of the view, or one of Mitsuba 3's microfacet BSDFs (roughconductor,
@@ -54,6 +55,7 @@ from ..vocabulary import MATERIALS
 from .bvh import SELF_HIT, any_hit_between, closest_hit_from
 from .device import ReceiverData, SceneData, upload
 from .emitters import nearest_emitter
+from .spheres import nearest_sphere, spheres_block
 from .environment import environment_radiance
 from .microfacet import conductor_brdf, plastic_brdf
 from .shading import ShadingPoint, with_frame
@@ -135,6 +137,8 @@ def radiance_unless_blocked(scene: SceneData, p: wp.vec3, n: wp.vec3, w: wp.vec3
     if length > 0.0 and any_hit_between(scene.bvh, scene.mesh, p, n, y, scene.emitter_normal[k], p + lead * w, w,
                                          length):
         return 0.0
+    if length > 0.0 and spheres_block(scene, p, w, lead, t - tail, -1):
+        return 0.0
     return scene.tri_emission[scene.emitter_tri[k]]
 
 
@@ -167,7 +171,15 @@ def closest_radiance(scene: SceneData, p: wp.vec3, n: wp.vec3, w: wp.vec3, lead:
     """Le of the first surface the ray (p, ω) hits beyond distance ``lead``, from one
     closest-hit query (hits on the plane through p of normal n are rounding, and are
     ignored; n = 0 for a p on no surface); the environment's radiance if it hits none."""
-    hit = closest_hit_from(scene.bvh, scene.mesh, p, n, p + lead * w, w, FAR)
+    # The nearest sphere crossing first: it bounds the triangle query, and it is what the
+    # ray sees unless a triangle comes before it: its emission if the ray meets the
+    # sphere's front (the near root meets the outside, spheres.py), else 0.
+    ball = nearest_sphere(scene, p, w, lead, FAR)
+    hit = closest_hit_from(scene.bvh, scene.mesh, p, n, p + lead * w, w, wp.where(ball.s >= 0, ball.t - lead, FAR))
+    if hit.face < 0 and ball.s >= 0:
+        if ball.front == 0:
+            return 0.0
+        return scene.sphere_emission[ball.s]
     if hit.face < 0:  # the ray leaves the scene
         return environment_radiance(scene.environment, w)
     if hit.sign <= 0.0:  # a back face: emission is one-sided
@@ -246,6 +258,8 @@ def delta_term(scene: SceneData, sp: ShadingPoint, w: wp.vec3, t: float, e: floa
         y = sp.p + t * w
         length = t - lead - SELF_HIT * wp.max(wp.max(wp.abs(y[0]), wp.abs(y[1])), wp.abs(y[2]))
     if length > 0.0 and any_hit_between(scene.bvh, scene.mesh, sp.p, sp.ng, sp.p, sp.ng, sp.p + lead * w, w, length):
+        return 0.0
+    if length > 0.0 and spheres_block(scene, sp.p, w, lead, lead + length, -1):
         return 0.0
     return e * rho * cos_n
 

@@ -8,14 +8,17 @@ Techniques (entries of ``TECHNIQUES`` (below)):
 ``phong``              the lobe (e+1)/(2π) cos^e α about the view's mirror direction, on the
                        whole sphere: directions below the horizon are produced with that
                        density and carry f = 0, so the estimate stays unbiased.
-``light-area``         an emitter triangle picked by its share of the total emitter area
-                       (u.x through the area CDF, then rescaled within the chosen interval
-                       so that strata of u stay strata), a uniform point on it; a uniform
-                       area density 1/A over all emitters, in solid angle A⁻¹ r²/|cos θ_y|.
-``light-power``        the same with triangles picked in proportion to radiance × area.
-``light-solid-angle``  a triangle picked in proportion to solid angle × radiance among those
+``light-area``         an emitter triangle or sphere light picked by its share of the total
+                       emitter area (u.x through the area CDF, then rescaled within the
+                       chosen interval so that strata of u stay strata), a uniform point on
+                       it; a uniform area density 1/A over all emitters, in solid angle
+                       A⁻¹ r²/|cos θ_y|.
+``light-power``        the same with lights picked in proportion to radiance × area.
+``light-solid-angle``  a light picked in proportion to solid angle × radiance among those
                        whose front faces the receiver, then a uniform direction within its
-                       spherical triangle (Arvo 1995).
+                       spherical triangle (Arvo 1995), or within the cone a sphere light
+                       subtends (uniform over the whole sphere of directions inside an
+                       inward-emitting sphere).
 ``bsdf``               the receiver material's own sampling, as Mitsuba 3 samples it: cosine
                        for irradiance and lambert, the lobe for phong, visible normals (Heitz
                        2018) or the whole distribution for roughconductor, and for
@@ -68,7 +71,8 @@ from .environment import environment_pdf, sample_environment
 from .integrand import PHONG as PHONG_MATERIAL
 from .integrand import ROUGHCONDUCTOR, ROUGHPLASTIC, ShadingPoint, shading_point
 from .microfacet import conductor_pdf, conductor_sample, plastic_pdf, plastic_sample
-from .warps import (cosine_hemisphere_pdf, phong_lobe_pdf, square_to_cosine_hemisphere, square_to_phong_lobe,
+from .spheres import NO_ROOT, cone_sample, into_sphere, one_minus_cos_max, sphere_area_point, sphere_roots
+from .warps import (PI64, cosine_hemisphere_pdf, phong_lobe_pdf, square_to_cosine_hemisphere, square_to_phong_lobe,
                     square_to_spherical_triangle, square_to_triangle, square_to_uniform_hemisphere, to_world,
                     triangle_solid_angle, uniform_hemisphere_pdf)
 
@@ -125,9 +129,10 @@ Crossings = wp.types.vector(length=MAX_CROSSINGS, dtype=wp.float32)
 
 @wp.struct
 class LightTable:
-    """Per-receiver selection of emitter triangles for ``light-solid-angle``."""
+    """Per-receiver selection of lights (emitter triangles, then sphere lights) for
+    ``light-solid-angle``."""
 
-    cdf: wp.array2d(dtype=wp.float64)  # (R, E + 1): Σ Ω_k L_k over front-facing k, normalised
+    cdf: wp.array2d(dtype=wp.float64)  # (R, E + L + 1): Σ Ω_k L_k over front-facing k, normalised
     total: wp.array(dtype=wp.float64)  # (R,): Σ Ω_k L_k; 0 when no emitter faces the receiver
 
 
@@ -238,16 +243,53 @@ def light_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPo
     acc = CrossingSum()
     acc.pdf = 0.0
     acc.count = 0
+    spheres = float(0.0)
+    for j in range(scene.light_count - scene.emitter_count):
+        spheres = spheres + sphere_light_pdf(tech, scene, table, sp, w, j)
     if scene.emitter_count <= FEW_EMITTERS:
-        if meets_box(scene.emitter_lower, scene.emitter_upper, sp.p, w):
+        if scene.emitter_count > 0 and meets_box(scene.emitter_lower, scene.emitter_upper, sp.p, w):
             for k in range(scene.emitter_count):
                 acc = add_crossing(acc, tech, scene, table, sp, w, k)
-        return acc.pdf
+        return acc.pdf + spheres
     query = wp.bvh_query_ray(scene.emitter_bvh, sp.p, w)
     k = wp.int32(0)
     while wp.bvh_query_next(query, k):
         acc = add_crossing(acc, tech, scene, table, sp, w, k)
-    return acc.pdf
+    return acc.pdf + spheres
+
+
+@wp.func
+def sphere_light_pdf(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, w: wp.vec3,
+                     j: wp.int32) -> float:
+    """Sphere light j's share of a light technique's density at ω.
+
+    light-solid-angle: L_j / Σ Ω_k L_k where ω lies in the sphere's cone (a ray that
+    meets it ahead, its front facing the receiver); light-area and light-power: its
+    area density at each of the ray's crossings, t²/|cos θ_y| per unit solid angle."""
+    s = scene.sphere_light[j]
+    c = scene.sphere_center[s]
+    r = scene.sphere_radius[s]
+    roots = sphere_roots(sp.p, w, c, r)
+    if roots[1] <= wp.float64(0.0):  # a miss (NO_ROOT) or a sphere behind
+        return 0.0
+    radiance = scene.sphere_emission[s]
+    if tech == LIGHT_SOLID_ANGLE:
+        inside = roots[0] <= wp.float64(0.0)
+        faces = (inside and scene.sphere_inward[s] != 0) or (not inside and scene.sphere_inward[s] == 0)
+        if faces and table.total[sp.receiver] > wp.float64(0.0):
+            return radiance / float(table.total[sp.receiver])
+        return 0.0
+    density = light_density(tech, scene, radiance)
+    out = float(0.0)
+    p64 = wp.vec3d(wp.float64(sp.p[0]), wp.float64(sp.p[1]), wp.float64(sp.p[2]))
+    w64 = wp.vec3d(wp.float64(w[0]), wp.float64(w[1]), wp.float64(w[2]))
+    for i in range(2):
+        t = roots[i]
+        if t > wp.float64(0.0):
+            n = (p64 + t * w64 - c) / r
+            cos_y = wp.max(wp.abs(float(wp.dot(n, w64))), 1.0e-12)
+            out = out + density * float(t * t) / cos_y
+    return out
 
 
 @wp.struct
@@ -272,8 +314,24 @@ def unknown_sample(w: wp.vec3) -> DirectionSample:
 
 
 @wp.func
+def pick_light(tech: wp.int32, scene: SceneData, u: wp.vec2):
+    """light-area / light-power: (k, u') the light k (an emitter triangle, or sphere light
+    k − E) that u.x picks, and u with u.x rescaled within k's interval."""
+    k = wp.int32(0)
+    ux = float(0.0)
+    if tech == LIGHT_POWER:
+        k = search_cdf(scene.power_cdf, scene.light_count, u[0])
+        ux = rescale(u[0], scene.power_cdf[k], scene.power_cdf[k + 1])
+    else:
+        k = search_cdf(scene.area_cdf, scene.light_count, u[0])
+        ux = rescale(u[0], scene.area_cdf[k], scene.area_cdf[k + 1])
+    return k, wp.vec2(ux, u[1])
+
+
+@wp.func
 def pick_light_point(tech: wp.int32, scene: SceneData, u: wp.vec2):
-    """light-area / light-power: (y, k), the point y of emitter triangle k that u maps to."""
+    """light-area / light-power on emitter triangles alone: (y, k), the point y of emitter
+    triangle k that u maps to."""
     n_e = scene.emitter_count
     k = wp.int32(0)
     ux = float(0.0)
@@ -309,6 +367,30 @@ def sample_light_point(tech: wp.int32, scene: SceneData, sp: ShadingPoint, u: wp
 
 
 @wp.func
+def sample_sphere_light(tech: wp.int32, scene: SceneData, sp: ShadingPoint, u: wp.vec2, j: wp.int32) -> wp.vec3:
+    """A direction towards sphere light j: uniform in the cone it subtends
+    (light-solid-angle; uniform over all directions from inside an inward sphere), or
+    towards a uniform point of its surface (light-area, light-power)."""
+    s = scene.sphere_light[j]
+    c = scene.sphere_center[s]
+    r = scene.sphere_radius[s]
+    p64 = wp.vec3d(wp.float64(sp.p[0]), wp.float64(sp.p[1]), wp.float64(sp.p[2]))
+    to_c = c - p64
+    inside = wp.dot(to_c, to_c) <= r * r
+    d = wp.vec3d(0.0, 0.0, 0.0)
+    if tech == LIGHT_SOLID_ANGLE:
+        if inside:
+            d = sphere_area_point(u, wp.vec3d(0.0, 0.0, 0.0), wp.float64(1.0))  # uniform on the unit sphere
+        else:
+            d = cone_sample(u, wp.normalize(to_c), one_minus_cos_max(p64, c, r))
+    else:
+        d = sphere_area_point(u, c, r) - p64
+    if wp.length_sq(d) == wp.float64(0.0):
+        return wp.vec3(0.0, 0.0, 0.0)
+    return into_sphere(sp.p, wp.normalize(d), c, r)
+
+
+@wp.func
 def sample_light(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2) -> wp.vec3:
     """A direction from a light technique (zero vector when there is nothing to sample)."""
     n_e = scene.emitter_count
@@ -317,15 +399,20 @@ def sample_light(tech: wp.int32, scene: SceneData, table: LightTable, sp: Shadin
         if total <= wp.float64(0.0):
             return wp.vec3(0.0, 0.0, 0.0)
         x = wp.float64(u[0])
-        k = search_cdf_row(table.cdf, sp.receiver, n_e, x)
+        k = search_cdf_row(table.cdf, sp.receiver, scene.light_count, x)
         lo = table.cdf[sp.receiver, k]
         hi = table.cdf[sp.receiver, k + 1]
         ux = float(wp.clamp((x - lo) / wp.max(hi - lo, wp.float64(1.0e-300)), wp.float64(0.0), wp.float64(0.99999994)))
+        if k >= n_e:
+            return sample_sphere_light(tech, scene, sp, wp.vec2(ux, u[1]), k - n_e)
         p64 = wp.vec3d(wp.float64(sp.p[0]), wp.float64(sp.p[1]), wp.float64(sp.p[2]))
         d = square_to_spherical_triangle(wp.vec2(ux, u[1]), p64, emitter_corner64(scene, k, 0),
                                          emitter_corner64(scene, k, 1), emitter_corner64(scene, k, 2))
         return wp.normalize(wp.vec3(float(d[0]), float(d[1]), float(d[2])))
-    y, k = pick_light_point(tech, scene, u)
+    k, uk = pick_light(tech, scene, u)
+    if k >= n_e:
+        return sample_sphere_light(tech, scene, sp, uk, k - n_e)
+    y = square_to_triangle(uk, emitter_corner(scene, k, 0), emitter_corner(scene, k, 1), emitter_corner(scene, k, 2))
     return wp.normalize(y - sp.p)
 
 
@@ -400,6 +487,21 @@ def sample_technique(tech: wp.int32, scene: SceneData, table: LightTable, sp: Sh
 # --------------------------------------------------------------------------- light table
 
 
+@wp.func
+def sphere_solid_angle(scene: SceneData, p: wp.vec3d, s: wp.int32) -> wp.float64:
+    """The solid angle of sphere s's front as seen from p: its cone 2π(1 − cos θmax) from
+    outside an outward sphere, 4π from inside an inward one, else 0."""
+    c = scene.sphere_center[s]
+    r = scene.sphere_radius[s]
+    to_c = c - p
+    inside = wp.dot(to_c, to_c) <= r * r
+    if inside and scene.sphere_inward[s] != 0:
+        return wp.float64(4.0) * wp.float64(PI64)
+    if not inside and scene.sphere_inward[s] == 0:
+        return wp.float64(2.0) * wp.float64(PI64) * one_minus_cos_max(p, c, r)
+    return wp.float64(0.0)
+
+
 @wp.kernel(enable_backward=False)
 def _light_table_kernel(scene: SceneData, recv: ReceiverData, cdf: wp.array2d(dtype=wp.float64),
                         total: wp.array(dtype=wp.float64)):
@@ -414,18 +516,22 @@ def _light_table_kernel(scene: SceneData, recv: ReceiverData, cdf: wp.array2d(dt
                                          emitter_corner64(scene, k, 2))
             acc = acc + omega * wp.float64(scene.tri_emission[scene.emitter_tri[k]])
         cdf[r, k + 1] = acc
+    for j in range(scene.light_count - scene.emitter_count):
+        acc = acc + sphere_solid_angle(scene, p64, scene.sphere_light[j]) * wp.float64(
+            scene.sphere_emission[scene.sphere_light[j]])
+        cdf[r, scene.emitter_count + j + 1] = acc
     total[r] = acc
     if acc > wp.float64(0.0):
-        for k in range(scene.emitter_count + 1):
+        for k in range(scene.light_count + 1):
             cdf[r, k] = cdf[r, k] / acc
-        cdf[r, scene.emitter_count] = wp.float64(1.0)
+        cdf[r, scene.light_count] = wp.float64(1.0)
 
 
 def light_table(scene: Scene) -> LightTable:
     """The solid-angle selection table of every receiver of ``scene``, built once per
     content and device (kept with its upload, :meth:`warpis.kernels.device.DeviceScene.cached`)."""
     dev = upload(scene)
-    return dev.cached("light_table", lambda: _build_light_table(dev, len(scene.receivers), scene.emitter_count))
+    return dev.cached("light_table", lambda: _build_light_table(dev, len(scene.receivers), scene.light_count))
 
 
 def _build_light_table(dev: DeviceScene, receivers: int, emitters: int) -> LightTable:
@@ -560,9 +666,9 @@ def check_lights(scene: Scene, techniques: Sequence[str], estimates_f: bool = Tr
     them), so either alone would estimate part of F and print it as F."""
     entries = [TECHNIQUES.lookup(name) for name in techniques]
     for tech in entries:
-        if tech.light and scene.emitter_count == 0:
-            raise WarpisError(f"technique {tech.name}: scene {scene.name!r} has no emitter triangle (it is lit by its "
-                              f"environment alone): sample it with envmap or a BSDF technique")
+        if tech.light and scene.light_count == 0:
+            raise WarpisError(f"technique {tech.name}: scene {scene.name!r} has no emitter triangle or sphere light "
+                              f"(it is lit by its environment alone): sample it with envmap or a BSDF technique")
         if tech.environment and scene.environment is None:
             raise WarpisError(f"technique {tech.name}: scene {scene.name!r} has no environment light")
     names = "+".join(techniques)
@@ -571,7 +677,7 @@ def check_lights(scene: Scene, techniques: Sequence[str], estimates_f: bool = Tr
     if scene.environment is not None and entries and all(t.light for t in entries):
         raise WarpisError(f"techniques {names} sample the emitter triangles only and miss the environment light of "
                           f"scene {scene.name!r}: add envmap or a BSDF technique")
-    if scene.emitter_count and entries and all(t.environment for t in entries):
+    if scene.light_count and entries and all(t.environment for t in entries):
         raise WarpisError(f"technique {names} samples the environment only and misses the emitter triangles of "
                           f"scene {scene.name!r}: add a light or a BSDF technique")
 

@@ -28,26 +28,31 @@ import numpy as np
 from .. import limits
 from ..errors import WarpisError, fail
 from .normals import interpolate_normals
+from .spheres import Spheres
 
 # The primary-ray cast that finds what each pixel sees is a Warp kernel, a floor above
 # the scenes: kernels/camera.py registers it here when it is imported (warpis/__init__.py
 # imports it), so the scenes stay plain data that never import the kernels.
-RayCaster = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str], np.ndarray]
+RayCaster = Callable[..., np.ndarray]
 _ray_caster: list[RayCaster] = []
 
 
 def register_ray_caster(cast: RayCaster) -> None:
-    """Set ``cast(vertices, triangles, origin, directions, device) → (P,) int32``, the first
-    triangle each ray meets (−1: none), which camera receivers are found with."""
+    """Set ``cast(vertices, triangles, origin, directions, device[, spheres]) → (P,) int32``,
+    the first primitive each ray meets: a triangle index, T + s for analytic sphere s of
+    ``spheres`` (a :class:`~warpis.scenes.spheres.Spheres`), −1 for none; camera receivers
+    are found with it."""
     _ray_caster[:] = [cast]
 
 
 def first_hits(vertices: np.ndarray, triangles: np.ndarray, origin: np.ndarray, directions: np.ndarray,
-               device: str) -> np.ndarray:
+               device: str, spheres: Spheres | None = None) -> np.ndarray:
     """The registered ray cast (see :func:`register_ray_caster`)."""
     if not _ray_caster:
         raise WarpisError("camera receivers need the kernels' ray cast: import warpis (it registers it)")
-    return _ray_caster[0](vertices, triangles, origin, directions, device)
+    if spheres is None:
+        return _ray_caster[0](vertices, triangles, origin, directions, device)
+    return _ray_caster[0](vertices, triangles, origin, directions, device, spheres)
 
 
 # What a pixel sees (ImageLayout.seen).
@@ -202,8 +207,8 @@ class CameraHits:
 
 def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emission: np.ndarray,
                 owner: np.ndarray, two_sided: Sequence[bool], device: str,
-                corner_normals: np.ndarray | None = None, unshaded: Sequence[str | None] | None = None
-                ) -> CameraHits:
+                corner_normals: np.ndarray | None = None, unshaded: Sequence[str | None] | None = None,
+                spheres: Spheres | None = None) -> CameraHits:
     """Cast the camera's primary rays; the receivers they find and what each pixel sees.
 
     ``corner_normals`` (T, 3, 3), where given, are the vertex normals at each triangle's
@@ -213,42 +218,60 @@ def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emi
     ``unshaded``, where given, holds per mesh None, or words naming a mesh whose BSDF
     warpis cannot shade (an occluder only): its pixels, either side, are masked as
     ``PIXEL_UNSHADED`` (an emitter's stay ``PIXEL_EMITTER``), with a note counting them
-    by mesh."""
+    by mesh.
+
+    ``spheres``, where given, are analytic spheres (their ``owner`` indexes the same mesh
+    rows): a pixel that sees one first lies on it exactly, with its exact normal."""
     directions = camera.directions()
-    face = first_hits(vertices, triangles, camera.position, directions, device)
+    face = first_hits(vertices, triangles, camera.position, directions, device, spheres)
     seen = np.full(len(face), PIXEL_NOTHING, np.int8)
     hit = np.flatnonzero(face >= 0)
-    tri = face[hit]
-    v = vertices[triangles[tri]]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     d = directions[hit]
+    tri = np.where(face[hit] < len(triangles), face[hit], -1)
+    ball = np.flatnonzero(tri < 0)
+    flat = np.flatnonzero(tri >= 0)
+    n = np.zeros((len(hit), 3))
+    t = np.zeros(len(hit))
+    dn = np.ones(len(hit))
+    v = vertices[triangles[tri[flat]]]
     with np.errstate(invalid="ignore", divide="ignore"):
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        dn = np.einsum("ij,ij->i", d, n)
+        nf = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        nf /= np.linalg.norm(nf, axis=1, keepdims=True)
+        n[flat] = nf
+        dn[flat] = np.einsum("ij,ij->i", d[flat], nf)
         # The hit point on the triangle's plane in float64 (the float32 ray's t is coarser).
-        t = np.einsum("ij,ij->i", v[:, 0] - camera.position, n) / dn
+        t[flat] = np.einsum("ij,ij->i", v[:, 0] - camera.position, nf) / dn[flat]
+    emitter = np.zeros(len(hit), bool)
+    own = np.zeros(len(hit), np.int64)
+    emitter[flat] = emission[tri[flat]] > 0
+    own[flat] = owner[tri[flat]]
+    if len(ball):
+        sid = face[hit[ball]] - len(triangles)
+        t[ball], n[ball] = _sphere_crossing(spheres, sid, camera.position, d[ball])
+        emitter[ball] = spheres.emission[sid] > 0
+        own[ball] = spheres.owner[sid]
     # A ray grazing a triangle edge-on, or one whose triangle has no area, finds no surface.
     solid = np.isfinite(t) & (t > 0) & (np.abs(dn) > 1e-6)
     notes = []
     if not solid.all():
         notes.append(f"{int((~solid).sum())} pixel(s) meet a triangle edge-on or one of zero area: masked as "
                      f"seeing nothing")
-    shade = n
-    if corner_normals is not None:
-        shade = interpolate_normals(corner_normals[tri], v, camera.position + t[:, None] * d)
-        cancelled = ~np.isfinite(shade).all(axis=1)
-        shade[cancelled] = n[cancelled]  # vertex normals that cancel: the triangle's own
+    shade = n.copy()
+    if corner_normals is not None and len(flat):
+        interpolated = interpolate_normals(corner_normals[tri[flat]], v, camera.position + t[flat, None] * d[flat])
+        cancelled = ~np.isfinite(interpolated).all(axis=1)
+        interpolated[cancelled] = nf[cancelled]  # vertex normals that cancel: the triangle's own
+        shade[flat] = interpolated
     with np.errstate(invalid="ignore"):
         ds = np.einsum("ij,ij->i", d, shade)
-    emitter = emission[tri] > 0
-    cannot = np.zeros(len(tri), bool)
+    cannot = np.zeros(len(hit), bool)
     if unshaded is not None:
-        cannot = np.array([u is not None for u in unshaded], bool)[owner[tri]] & solid & ~emitter
+        cannot = np.array([u is not None for u in unshaded], bool)[own] & solid & ~emitter
         if cannot.any():
-            meshes, counts = np.unique(owner[tri[cannot]], return_counts=True)
+            meshes, counts = np.unique(own[cannot], return_counts=True)
             notes.append(f"{int(cannot.sum())} pixel(s) see a surface whose BSDF warpis cannot shade: masked ("
                          + ", ".join(f"{unshaded[m]}: {c}" for m, c in zip(meshes, counts)) + ")")
-    back = (ds > 0) & ~np.asarray(two_sided, bool)[owner[tri]] & ~cannot
+    back = (ds > 0) & ~np.asarray(two_sided, bool)[own] & ~cannot
     seen[hit[solid & emitter]] = PIXEL_EMITTER
     seen[hit[cannot]] = PIXEL_UNSHADED
     seen[hit[solid & ~emitter & back]] = PIXEL_BACK
@@ -260,7 +283,22 @@ def cast_camera(camera: Camera, vertices: np.ndarray, triangles: np.ndarray, emi
     geometric = np.where(towards, n[keep], -n[keep])
     view = -d[keep]
     layout = ImageLayout(camera, seen.reshape(camera.shape), hit[keep].astype(np.int64))
-    return CameraHits(p, normals, view, owner[tri[keep]], layout, tuple(notes), geometric, tri[keep])
+    return CameraHits(p, normals, view, own[keep], layout, tuple(notes), geometric, tri[keep])
+
+
+def _sphere_crossing(spheres: Spheres, index: np.ndarray, origin: np.ndarray, d: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """(t, front normal) where rays from ``origin`` along ``d`` first meet spheres ``index``
+    (float64; t = nan for a miss): the near root meets the outside, the far one the inside."""
+    oc = spheres.centers[index] - origin
+    tc = np.einsum("ij,ij->i", oc, d) / np.einsum("ij,ij->i", d, d)
+    q = np.linalg.norm(tc[:, None] * d - oc, axis=1)
+    r = spheres.radii[index]
+    with np.errstate(invalid="ignore"):
+        h = np.sqrt((r - q) * (r + q)) / np.linalg.norm(d, axis=1)
+    t = np.where(tc - h > 0, tc - h, tc + h)
+    outward = (origin + t[:, None] * d - spheres.centers[index]) / r[:, None]
+    return t, np.where(spheres.inward[index, None] != 0, -outward, outward)
 
 
 def camera_receiver_fields(hits: CameraHits, surfaces: Sequence[dict[str, Any] | None],

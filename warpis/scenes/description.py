@@ -31,6 +31,7 @@ from ..vocabulary import DISTRIBUTIONS, MATERIALS, Material
 from .camera import ImageLayout
 from .delta import DeltaLights, check_delta_lights
 from .environment import Environment, check_environment
+from .spheres import Spheres, check_spheres
 
 # Emitter triangles whose area is below this fraction of their longest edge squared are
 # needles: no float32 ray can hit them reliably nor can they be sampled with a finite pdf.
@@ -149,6 +150,9 @@ class Scene:
     # Point, spot and directional lights as seen from each receiver (scenes/delta.py):
     # their exact term is part of every estimate of F.  None: the scene has none.
     delta_lights: DeltaLights | None = None
+    # Analytic spheres (scenes/spheres.py): shapes of their own beside the triangles,
+    # intersected and sampled exactly; emitters where their emission > 0.  None: none.
+    spheres: Spheres | None = None
 
     def __post_init__(self) -> None:
         _freeze(self, _SCENE_ARRAYS)
@@ -170,7 +174,8 @@ class Scene:
                     grid_shape: tuple[int, int] | None = None, triangle_mesh: Any = None,
                     mesh_names: Sequence[str] | None = None, name: str = "arrays", description: str = "",
                     device: str = "cpu", geometric_normals: Any = None,
-                    environment: Environment | None = None, delta_lights: DeltaLights | None = None) -> Scene:
+                    environment: Environment | None = None, delta_lights: DeltaLights | None = None,
+                    spheres: Spheres | None = None) -> Scene:
         """A validated scene from arrays, with the same checks as a scene file.
 
         Parameters
@@ -215,6 +220,9 @@ class Scene:
         delta_lights
             A :class:`~warpis.scenes.delta.DeltaLights` table at these receivers: point,
             spot and directional lights, whose exact term every estimate of F carries.
+        spheres
+            A :class:`~warpis.scenes.spheres.Spheres` table: analytic spheres (owners
+            index ``mesh_names``), emitters where their emission > 0.
 
         Raises
         ------
@@ -234,7 +242,8 @@ class Scene:
         return assemble_scene(where, lambda m: f"{where}: mesh {names[m]!r}", "give some triangle an emission > 0",
                          name=name, vertices=vertices, triangles=triangles, emission=emission, receivers=rx,
                          triangle_mesh=triangle_mesh, mesh_names=names, description=description,
-                         device=str(device), environment=environment, delta_lights=delta_lights)
+                         device=str(device), environment=environment, delta_lights=delta_lights,
+                         spheres=spheres)
 
     def on(self, device: str) -> Scene:
         """The same scene with its kernels on ``device``."""
@@ -251,7 +260,9 @@ class Scene:
         lit = () if self.environment is None else ("environment.texels", "environment.rotation")
         delta = () if self.delta_lights is None else ("delta_lights.directions", "delta_lights.distances",
                                                       "delta_lights.irradiance")
-        for name in DIGEST_FIELDS + shaded + lit + delta:
+        round_ = () if self.spheres is None else ("spheres.centers", "spheres.radii", "spheres.emission",
+                                                  "spheres.inward")
+        for name in DIGEST_FIELDS + shaded + lit + delta + round_:
             a = self
             for part in name.split("."):
                 a = getattr(a, part)
@@ -282,20 +293,47 @@ class Scene:
 
     @property
     def emitter_count(self) -> int:
+        """The emitter triangles (sphere lights are :attr:`sphere_lights`)."""
         return len(self.emitters)
 
     @property
     def emitter_radiance(self) -> np.ndarray:
         return self.emission[self.emitters]
 
+    @cached_property
+    def sphere_lights(self) -> np.ndarray:
+        """(L,) int32 index into ``spheres`` of each emitting sphere."""
+        out = np.zeros(0, np.int32) if self.spheres is None else self.spheres.lights
+        out.flags.writeable = False
+        return out
+
+    @property
+    def light_count(self) -> int:
+        """The lights the light techniques sample: emitter triangles, then emitting spheres."""
+        return self.emitter_count + len(self.sphere_lights)
+
+    @property
+    def light_areas(self) -> np.ndarray:
+        """(E + L,) area of each emitter triangle, then of each sphere light."""
+        spheres = np.zeros(0) if self.spheres is None else self.spheres.areas[self.sphere_lights]
+        return np.concatenate([self.emitter_areas, spheres])
+
+    @property
+    def light_radiance(self) -> np.ndarray:
+        """(E + L,) radiance of each emitter triangle, then of each sphere light."""
+        spheres = np.zeros(0) if self.spheres is None else self.spheres.emission[self.sphere_lights]
+        return np.concatenate([self.emitter_radiance, spheres])
+
     @property
     def total_emitter_area(self) -> float:
-        return float(self.emitter_areas.sum())
+        """Σ area over the emitter triangles and sphere lights."""
+        return float(self.light_areas.sum())
 
     @property
     def total_power(self) -> float:
-        """Σ radiance × area over emitter triangles (radiant exitance would add a π)."""
-        return float((self.emitter_radiance * self.emitter_areas).sum())
+        """Σ radiance × area over emitter triangles and sphere lights (radiant exitance
+        would add a π)."""
+        return float((self.light_radiance * self.light_areas).sum())
 
     def triangle_vertices(self, which: np.ndarray | None = None) -> np.ndarray:
         """Corner positions, (T, 3, 3), of all triangles or of the triangles ``which``."""
@@ -309,6 +347,8 @@ class Scene:
             "path": None if self.path is None else str(self.path),
             "triangles": self.triangle_count,
             "emitter_triangles": self.emitter_count,
+            "spheres": 0 if self.spheres is None else len(self.spheres),
+            "sphere_lights": len(self.sphere_lights),
             "receivers": len(self.receivers),
             "emitter_area": self.total_emitter_area,
             "total_power": self.total_power,
@@ -595,10 +635,11 @@ def _drop_needles(vertices: np.ndarray, triangles: np.ndarray, emission: np.ndar
 def assemble_scene(where: object, mesh_where: Callable[[int], object], hint: str, *, name: str, vertices: Any,
               triangles: Any, emission: Any, receivers: Receivers, triangle_mesh: Any, mesh_names: Any,
               description: str, device: str, path: Path | None = None, notes: tuple[str, ...] = (),
-              environment: Environment | None = None, delta_lights: DeltaLights | None = None) -> Scene:
+              environment: Environment | None = None, delta_lights: DeltaLights | None = None,
+              spheres: Spheres | None = None) -> Scene:
     """The one gate of every source (a scene file, arrays): each array against the kernels'
-    limits, degenerate emitters dropped, at least one emitter (a triangle or an
-    environment) → a Scene.
+    limits, degenerate emitters dropped, at least one emitter (a triangle, a sphere, an
+    environment or a delta light) → a Scene.
 
     ``where`` prefixes errors; ``mesh_where(m)`` names mesh m; ``hint`` says how to add an emitter.
     """
@@ -616,9 +657,14 @@ def assemble_scene(where: object, mesh_where: Callable[[int], object], hint: str
         if not isinstance(delta_lights, DeltaLights):
             raise fail(where, f"delta_lights: expected DeltaLights, got {type(delta_lights).__name__}")
         check_delta_lights(delta_lights, len(receivers), where)
+    if spheres is not None:
+        if not isinstance(spheres, Spheres):
+            raise fail(where, f"spheres: expected Spheres, got {type(spheres).__name__}")
+        check_spheres(spheres, len(names), where)
     if not (e > 0).any() and (environment is None or environment.power <= 0) and \
-            (delta_lights is None or not (delta_lights.irradiance > 0).any()):
+            (delta_lights is None or not (delta_lights.irradiance > 0).any()) and \
+            (spheres is None or not (spheres.emission > 0).any()):
         raise fail(where, f"the scene has no emitter ({hint})")
     return Scene(name=name, vertices=v, triangles=t, emission=e, receivers=receivers, triangle_mesh=owner,
                  mesh_names=names, description=description, path=path, device=device, notes=tuple(notes),
-                 environment=environment, delta_lights=delta_lights)
+                 environment=environment, delta_lights=delta_lights, spheres=spheres)

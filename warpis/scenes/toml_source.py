@@ -24,6 +24,7 @@ from ..vocabulary import DISTRIBUTIONS, MATERIALS
 from .camera import Camera, camera_receiver_fields, cast_camera
 from .description import (MICROFACET_DEFAULTS, MIN_ALPHA, Receivers, Scene, assemble_scene, checked_coordinates, check_receiver_count,
                           checked_unit, grey_microfacet)
+from .spheres import Spheres, tessellate_sphere
 
 
 def check_keys(table: dict, allowed: set[str], where: str, file: Path) -> None:
@@ -420,6 +421,72 @@ def _meshes(doc: dict, file: Path, shading: bool = False) -> _Meshes:
                    np.concatenate(owner), paths, surfaces, _corner_normals(vertices, triangles, normals))
 
 
+_SPHERE_KEYS = {"center", "radius", "emission", "material", "name", "inward", "tessellate"}
+
+
+def _spheres(doc: dict, file: Path, meshes: _Meshes) -> tuple[_Meshes, Spheres | None]:
+    """The scene's [[sphere]] tables: analytic spheres (owners after the meshes), and the
+    meshes with the triangles of those that ask to be tessellated (``tessellate = true``,
+    for comparisons: the icosphere keeps the sphere's area, scenes/spheres.py)."""
+    entries = doc.get("sphere", [])
+    if not isinstance(entries, list):
+        raise fail(file, "[[sphere]] must be an array of tables (write [[sphere]], not [sphere])")
+    vertices, triangles = [meshes.vertices], [meshes.triangles]
+    emission, owner = [meshes.emission], [meshes.owner]
+    paths, surfaces = list(meshes.paths), list(meshes.surfaces)
+    corners = [] if meshes.corner_normals is None else [meshes.corner_normals]
+    rows: list[tuple[np.ndarray, float, float, int, int]] = []
+    offset = len(meshes.vertices)
+    flat_corners = meshes.corner_normals is None
+    for i, entry in enumerate(entries):
+        where = f"[[sphere]] #{i + 1}"
+        if not isinstance(entry, dict):
+            raise fail(file, f"{where} must be a table")
+        check_keys(entry, _SPHERE_KEYS, where, file)
+        center = toml_vector(required_key(entry, "center", where, file), f"{where}.center", file)
+        radius = _number(required_key(entry, "radius", where, file), f"{where}.radius", file)
+        if radius <= 0:
+            raise fail(file, f"{where}.radius must be > 0, got {entry['radius']!r}")
+        radiance = entry.get("emission", 0.0)
+        if isinstance(radiance, bool) or not isinstance(radiance, (int, float)):
+            raise fail(file, f"{where}: emission must be a finite number >= 0, got {radiance!r}")
+        radiance = _float32(float(radiance), f"{where}: emission", file)
+        name = entry.get("name", where)
+        if not isinstance(name, str):
+            raise fail(file, f"{where}.name must be a string, got {name!r}")
+        inward = _boolean(entry.get("inward", False), f"{where}.inward", file)
+        tessellate = _boolean(entry.get("tessellate", False), f"{where}.tessellate", file)
+        checked_coordinates(np.array([np.abs(center) + radius]), f"{where} (centre + radius)", file)
+        mesh = len(paths)
+        paths.append(name)
+        surfaces.append(_surface(entry["material"], f"{where}.material", file) if "material" in entry else None)
+        if not tessellate:
+            rows.append((center, radius, float(radiance), inward, mesh))
+            continue
+        v, f, _ = tessellate_sphere(center, radius, bool(inward))
+        vertices.append(v)
+        triangles.append(f + offset)
+        emission.append(np.full(len(f), float(radiance)))
+        owner.append(np.full(len(f), mesh, np.int32))
+        radial = (v - center) / radius * (-1.0 if inward else 1.0)
+        corners.append(radial[f])
+        offset += len(v)
+    if flat_corners and len(corners):  # the meshes' own normals beside the tessellations' radial ones
+        t = meshes.vertices[meshes.triangles]
+        own = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            own /= np.linalg.norm(own, axis=1, keepdims=True)
+        corners.insert(0, np.repeat(own[:, None, :], 3, axis=1))
+    spheres = None
+    if rows:
+        spheres = Spheres(centers=np.array([r[0] for r in rows]), radii=np.array([r[1] for r in rows]),
+                          emission=np.array([r[2] for r in rows]), inward=np.array([r[3] for r in rows], np.int32),
+                          owner=np.array([r[4] for r in rows], np.int32))
+    merged = _Meshes(np.vstack(vertices), np.vstack(triangles).astype(np.int32), np.concatenate(emission),
+                     np.concatenate(owner), paths, surfaces, np.concatenate(corners) if corners else None)
+    return merged, spheres
+
+
 def _corner_normals(vertices: list[np.ndarray], triangles: list[np.ndarray], normals: list[np.ndarray | None]
                     ) -> np.ndarray | None:
     """(T, 3, 3) each triangle's corner normals: its mesh's vertex normals, else its own."""
@@ -443,25 +510,29 @@ def load_toml(file: Path, device: str = "cpu", width: int | None = None, height:
     """The scene of the TOML scene file ``file`` on Warp device ``device`` (docs/scene-files.md);
     ``width``/``height`` resize its camera (a scene with [receivers.camera])."""
     doc = read_toml(file)
-    check_keys(doc, {"name", "description", "mesh", "receivers", "material"}, "the top level", file)
+    check_keys(doc, {"name", "description", "mesh", "sphere", "receivers", "material"}, "the top level", file)
     name = doc.get("name", file.parent.name if file.name == "scene.toml" else file.stem)
     if not isinstance(name, str):
         raise fail(file, "name must be a string")
     if not isinstance(doc.get("description", ""), str):
         raise fail(file, "description must be a string")
     camera = _camera_spec(doc, file)
-    meshes = _meshes(doc, file, shading=camera is not None)
+    meshes, spheres = _spheres(doc, file, _meshes(doc, file, shading=camera is not None))
     notes: tuple[str, ...] = ()
     if camera is not None:
-        receivers, notes = _camera_receivers(camera.resized(width, height, file), meshes, doc, file, str(device))
+        receivers, notes = _camera_receivers(camera.resized(width, height, file), meshes, doc, file, str(device),
+                                             spheres)
     elif width is not None or height is not None:
         raise fail(file, "has no camera to resize: a camera scene has [receivers.camera] (docs/images.md)")
     else:
         receivers = _receivers(doc, file)
-    return assemble_scene(file, lambda m: file.parent / meshes.paths[m], "give some [[mesh]] an emission > 0", name=name,
+    count = len(doc["mesh"])
+    return assemble_scene(file, lambda m: file.parent / meshes.paths[m] if m < count else f"{file}: {meshes.paths[m]}",
+                          "give some [[mesh]] or [[sphere]] an emission > 0", name=name,
                      vertices=meshes.vertices, triangles=meshes.triangles, emission=meshes.emission,
                      receivers=receivers, triangle_mesh=meshes.owner, mesh_names=meshes.paths,
-                     description=str(doc.get("description", "")), device=str(device), path=file, notes=notes)
+                     description=str(doc.get("description", "")), device=str(device), path=file, notes=notes,
+                     spheres=spheres)
 
 
 _CAMERA_KEYS = {"position", "target", "up", "fov", "width", "height"}
@@ -486,8 +557,8 @@ def _camera_spec(doc: dict, file: Path) -> Camera | None:
     return Camera.look_at(position, target, up, fov, width, height, file)
 
 
-def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, device: str
-                      ) -> tuple[Receivers, tuple[str, ...]]:
+def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, device: str,
+                      spheres: Spheres | None = None) -> tuple[Receivers, tuple[str, ...]]:
     """The camera's pixels as receivers: each takes its mesh's material, else the scene's [material]."""
     default = None
     if "material" in doc:
@@ -495,11 +566,12 @@ def _camera_receivers(camera: Camera, meshes: _Meshes, doc: dict, file: Path, de
     surfaces = [s if s is not None else default for s in meshes.surfaces]
     # TOML materials reflect on both sides: the normal is turned towards the camera.
     hits = cast_camera(camera, meshes.vertices, meshes.triangles, meshes.emission, meshes.owner,
-                       [True] * len(meshes.paths), device, meshes.corner_normals)
+                       [True] * len(meshes.paths), device, meshes.corner_normals, spheres=spheres)
     check_receiver_count(len(hits.positions), f"[receivers.camera] ({camera.width} × {camera.height})", file)
 
     def unmaterialled(m: int, pixels: int) -> str:
-        return (f"[[mesh]] #{m + 1} ({meshes.paths[m]}) is seen by {pixels} camera pixel(s) but has no material: "
+        what = f"[[mesh]] #{m + 1} ({meshes.paths[m]})" if m < len(doc["mesh"]) else meshes.paths[m]
+        return (f"{what} is seen by {pixels} camera pixel(s) but has no material: "
                 f"give it material = {{ type = ... }}, or give the scene a [material] table")
 
     rx = Receivers(**camera_receiver_fields(hits, surfaces, unmaterialled, file))

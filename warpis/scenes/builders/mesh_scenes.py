@@ -60,6 +60,16 @@ class MeshEntry:
 
 
 @dataclass
+class SphereEntry:
+    """One ``[[sphere]]`` entry of a scene file: an analytic sphere (emitting where
+    ``emission`` is given)."""
+
+    center: tuple[float, float, float]
+    radius: float
+    emission: float | None = None
+
+
+@dataclass
 class ReceiverGroup:
     """One group of receivers sharing a normal and a material.
 
@@ -99,6 +109,8 @@ class Scene:
         Receiver groups.
     material : dict or None
         Default material, or None to leave it out.
+    spheres : list of SphereEntry
+        Analytic spheres, after the meshes.
     """
 
     name: str
@@ -107,6 +119,7 @@ class Scene:
     meshes: list[MeshEntry]
     receivers: list[ReceiverGroup]
     material: dict[str, Any] | None = None
+    spheres: list[SphereEntry] = field(default_factory=list)
 
 # ---------------------------------------------------------------------------
 # Geometry helpers
@@ -254,7 +267,7 @@ VEACH_EXPONENTS = (10.0, 50.0, 300.0, 2000.0)
 
 def veach_plates() -> Scene:
     """Veach's multiple-importance-sampling test: four plates, four sphere lights."""
-    files: dict[str, tuple[FloatArray, IntArray]] = {"light_sphere.obj": icosphere(2)}
+    files: dict[str, tuple[FloatArray, IntArray]] = {}
     meshes: list[MeshEntry] = []
     receivers: list[ReceiverGroup] = []
     for i, ((y, z), exponent) in enumerate(zip(VEACH_PLATES, VEACH_EXPONENTS), start=1):
@@ -266,15 +279,13 @@ def veach_plates() -> Scene:
         material = {"type": "phong", "exponent": exponent, "albedo": 0.8,
                     "view": (VEACH_CAMERA - center).tolist()}
         receivers.append(ReceiverGroup(points, normal, name=f"plate-{i}", material=material))
-    for x, radius in zip(VEACH_LIGHT_X, VEACH_RADII):
-        meshes.append(MeshEntry("light_sphere.obj", emission=VEACH_POWER / radius**2,
-                                transform={"translate": (VEACH_LIGHT_ROW + [x, 0, 0]).tolist(),
-                                           "scale": radius}))
+    spheres = [SphereEntry(tuple((VEACH_LIGHT_ROW + [x, 0, 0]).tolist()), radius, VEACH_POWER / radius**2)
+               for x, radius in zip(VEACH_LIGHT_X, VEACH_RADII)]
     return Scene(
         name="veach-plates",
         description="Veach's MIS scene: four phong plates of rising gloss and tilt reflecting "
-                    "four sphere lights with radius^2 * radiance constant.",
-        files=files, meshes=meshes, receivers=receivers,
+                    "four analytic sphere lights with radius^2 * radiance constant.",
+        files=files, meshes=meshes, receivers=receivers, spheres=spheres,
     )
 
 
@@ -335,6 +346,13 @@ def scene_toml(scene: Scene) -> str:
             out.append(f"emission = {toml_value(float(entry.emission))}")
         if entry.transform is not None:
             out.append(f"transform = {toml_value(entry.transform)}")
+        out.append("")
+    for ball in scene.spheres:
+        out.append("[[sphere]]")
+        out.append(f"center = {toml_value([float(c) for c in ball.center])}")
+        out.append(f"radius = {toml_value(float(ball.radius))}")
+        if ball.emission is not None:
+            out.append(f"emission = {toml_value(float(ball.emission))}")
         out.append("")
     out += receivers_toml(scene.receivers)
     if scene.material is not None:
@@ -417,10 +435,16 @@ def load_scene(name: str, root: Path) -> LoadedScene:
     folder = root / name
     data = tomllib.loads((folder / "scene.toml").read_text(encoding="utf-8"))
     parts = [load_part(folder, entry) for entry in data["mesh"]]
+    # Analytic spheres, as fine icospheres (5,120 triangles): the checks are ray casts and
+    # visible fractions, for which that is close enough.
+    for entry in data.get("sphere", []):
+        vertices, faces = icosphere(4)
+        parts.append(trimesh.Trimesh(vertices=np.asarray(entry["center"]) + entry["radius"] * vertices, faces=faces,
+                                     process=False))
     mesh_of_face = np.concatenate([np.full(len(p.faces), i) for i, p in enumerate(parts)])
     return LoadedScene(name=data["name"], mesh=trimesh.util.concatenate(parts), parts=parts,
                        mesh_of_face=mesh_of_face,
-                       emission=[entry.get("emission") for entry in data["mesh"]],
+                       emission=[entry.get("emission") for entry in data["mesh"] + data.get("sphere", [])],
                        groups=load_groups(data))
 
 

@@ -12,8 +12,9 @@ warpis's arrays and hands them to the same gate as every other source (``assembl
 * :mod:`.emitters` — ``area`` emitters with a uniform radiance, one-sided; an envmap or
   constant emitter as the scene's environment; point, spot and directional lights;
 * :mod:`.shapes` — every shape as triangles wound around Mitsuba's front side: triangle
-  meshes as Mitsuba holds them; ``rectangle``, ``sphere``, ``disk`` and ``cylinder``
-  tessellated to keep their area (``TESSELLATION_ERROR``);
+  meshes as Mitsuba holds them; ``rectangle`` as two; ``sphere`` as an analytic sphere
+  (or, with the receivers file's ``tessellate = true``, tessellated); ``disk`` and
+  ``cylinder`` tessellated to keep their area (``TESSELLATION_ERROR``);
 * :mod:`.materials` — each shape's BSDF: ``diffuse`` → lambert, ``roughconductor`` →
   roughconductor, ``roughplastic`` → roughplastic, alone or inside ``twosided``.  A
   shape with any other BSDF is an occluder only: it blocks shadow rays, as every shape
@@ -49,7 +50,7 @@ from .parse import MitsubaSession, is_grey
 from .receivers import ON_SURFACE, camera_receivers, file_receivers, read_receivers_file, receivers_path
 from .sensors import first_camera, first_viewer
 from .shapes import (CYLINDER_SEGMENTS, DISK_SEGMENTS, SPHERE_SUBDIVISIONS, SUPPORTED_SHAPES, TESSELLATION_ERROR,
-                     concatenate_shapes, read_shapes)
+                     concatenate_shapes, read_shapes, shape_spheres)
 
 __all__ = ["CHANNELS", "CYLINDER_SEGMENTS", "DEFAULT_CHANNEL", "DISK_SEGMENTS", "NONE_ETA", "ON_SURFACE",
            "SPHERE_SUBDIVISIONS", "SUPPORTED_BSDFS", "SUPPORTED_EMITTERS", "SUPPORTED_SHAPES", "TESSELLATION_ERROR",
@@ -103,19 +104,24 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
         scene = session.load()
         environment = read_environment(session.mi, scene, file, weights)
         delta_emitters = [e for e in scene.emitters() if e.class_name() in DELTA_KINDS]
-        shapes = read_shapes(session, scene, file, weights, lit=environment is not None or bool(delta_emitters))
+        shapes = read_shapes(session, scene, file, weights, lit=environment is not None or bool(delta_emitters),
+                             tessellate=side["tessellate"])
         sensor = first_viewer(session.mi, scene)
         lens = first_camera(session.mi, scene, file, width, height) if camera else None
         notes = [f"colour channel {channel}: {CHANNEL_WORDS[channel]}"]
         notes += session.warnings()
     label = {i: s.label for i, s in enumerate(shapes)}
     vertices, triangles, emission, owner = concatenate_shapes(shapes)
+    spheres = shape_spheres(shapes)
+    if not len(triangles):
+        raise fail(file, "the scene has no triangle shape: warpis needs at least one mesh, rectangle, disk or "
+                         "cylinder beside its spheres (or tessellate = true in the receivers file)")
     if lens is not None:
         rx, receiver_notes, under = camera_receivers(lens, shapes, vertices, triangles, emission, owner, file,
-                                                     str(device), scene)
+                                                     str(device), scene, spheres)
     else:
         rx, receiver_notes, under = file_receivers(side, shapes, vertices, triangles, owner, sensor, file, sidecar,
-                                                   scene)
+                                                   scene, spheres)
     delta = None
     if delta_emitters:
         with session:
@@ -139,4 +145,4 @@ def load_mitsuba(file: Path, device: str = "cpu", channel: str | None = None, re
     return assemble_scene(file, lambda m: f"{file}: shape {label[m]!r}", hint, name=name, vertices=vertices,
                      triangles=triangles, emission=emission, receivers=rx, triangle_mesh=owner,
                      mesh_names=[s.label for s in shapes], description=side["description"], device=str(device),
-                     path=file, notes=tuple(notes), environment=environment, delta_lights=delta)
+                     path=file, notes=tuple(notes), environment=environment, delta_lights=delta, spheres=spheres)

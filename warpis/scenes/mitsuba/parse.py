@@ -109,7 +109,13 @@ class MitsubaSession:
 def object_parameters(mi: Any, obj: Any) -> dict[str, Any]:
     """The parameters Mitsuba exposes for ``obj`` (mi.traverse), by key."""
     traversed = mi.traverse(obj)
-    return {key: traversed[key] for key in traversed.keys()}
+    out = {}
+    for key in traversed.keys():
+        try:
+            out[key] = traversed[key]
+        except TypeError:  # a parameter Mitsuba itself cannot read back (hair's unset sigma_a): never one warpis uses
+            continue
+    return out
 
 
 def transform_matrix(transform: Any) -> np.ndarray:

@@ -23,6 +23,7 @@ from .channels import check_channel
 from .materials import first_texture, texture_name
 from .parse import MitsubaSession, is_grey, to_rgb, vector_text
 from .sensors import Viewer
+from ..spheres import Spheres, sphere_points
 from .shapes import Shape
 from .surfaces import locate, nearest_distance, planar_grid
 
@@ -40,7 +41,7 @@ def receivers_path(file: Path) -> Path:
     return file.with_name(file.stem + ".receivers.toml")
 
 
-_SIDECAR_KEYS = {"name", "description", "channel", "view", "receivers"}
+_SIDECAR_KEYS = {"name", "description", "channel", "view", "receivers", "tessellate"}
 _GROUP_KEYS = {"name", "points", "normal", "normals", "view", "grid"}
 _GRID_KEYS = {"shape", "resolution"}
 
@@ -49,7 +50,7 @@ def read_receivers_file(sidecar: Path, file: Path, receivers_needed: bool = True
     """The receivers file, checked for its keys and their types (a camera's receivers are
     its pixels: then the file may be missing and its receivers are not read)."""
     if not receivers_needed and not sidecar.is_file():
-        return {"name": None, "description": "", "channel": None, "view": None, "groups": []}
+        return {"name": None, "description": "", "channel": None, "view": None, "groups": [], "tessellate": False}
     if not sidecar.is_file():
         raise fail(file, f"its receivers file {sidecar} does not exist: write one with [[receivers]] tables of "
                          f"points = [[x, y, z], ...] on the scene's surfaces, or grid = {{ shape = \"<id>\", "
@@ -62,9 +63,12 @@ def read_receivers_file(sidecar: Path, file: Path, receivers_needed: bool = True
     if "channel" in doc:
         check_channel(doc["channel"], sidecar)
     view = toml_vector(doc["view"], "view", sidecar) if "view" in doc else None
+    tessellate = doc.get("tessellate", False)
+    if not isinstance(tessellate, bool):
+        raise fail(sidecar, f"tessellate must be true or false, got {tessellate!r}")
     if not receivers_needed:
         return {"name": doc.get("name"), "description": doc.get("description", ""), "channel": doc.get("channel"),
-                "view": view, "groups": []}
+                "view": view, "groups": [], "tessellate": tessellate}
     spec = required_key(doc, "receivers", "the top level", sidecar)
     specs = spec if isinstance(spec, list) else [spec]
     if not specs:
@@ -72,7 +76,7 @@ def read_receivers_file(sidecar: Path, file: Path, receivers_needed: bool = True
     groups = [_group(g, "[receivers]" if len(specs) == 1 else f"[[receivers]] #{i + 1}", sidecar)
               for i, g in enumerate(specs)]
     return {"name": doc.get("name"), "description": doc.get("description", ""), "channel": doc.get("channel"),
-            "view": view, "groups": groups}
+            "view": view, "groups": groups, "tessellate": tessellate}
 
 
 def _group(spec: Any, where: str, sidecar: Path) -> dict[str, Any]:
@@ -128,15 +132,17 @@ def _group(spec: Any, where: str, sidecar: Path) -> dict[str, Any]:
 
 def file_receivers(side: dict[str, Any], shapes: list[Shape], vertices: np.ndarray, triangles: np.ndarray,
                    owner: np.ndarray, sensor: Viewer | str | None, file: Path, sidecar: Path,
-                   mitsuba_scene: Any = None) -> tuple[Receivers, list[str], np.ndarray]:
-    """The receivers of the receivers file on the scene's surfaces, notes about them, and
-    the shapes they lie on (``mitsuba_scene``: Mitsuba's, which evaluates textures)."""
+                   mitsuba_scene: Any = None, spheres: Spheres | None = None
+                   ) -> tuple[Receivers, list[str], np.ndarray]:
+    """The receivers of the receivers file on the scene's surfaces (triangles, and the
+    analytic ``spheres``, on which a point is moved radially onto the exact surface),
+    notes about them, and the shapes they lie on (``mitsuba_scene``: Mitsuba's, which
+    evaluates textures)."""
     tris = vertices[triangles]
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     with np.errstate(invalid="ignore", divide="ignore"):
         front = cross / np.linalg.norm(cross, axis=1, keepdims=True)
-    diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
-    base = ON_SURFACE * diagonal
+    base = ON_SURFACE * _diagonal(vertices, spheres)
     tol = base + np.array([s.deviation for s in shapes])[owner]
     emitter = np.array([s.radiance is not None for s in shapes])[owner]
     notes: list[str] = []
@@ -157,15 +163,22 @@ def file_receivers(side: dict[str, Any], shapes: list[Shape], vertices: np.ndarr
                 return emitter[ti], ~facing
 
             index, closest = locate(points, tris, tol, base, rank)
-            missing = np.flatnonzero(index < 0)
+            ball, closest = _on_spheres(spheres, points, index, closest, base)
+            missing = np.flatnonzero((index < 0) & (ball < 0))
             if len(missing):
                 i = int(missing[0])
                 d = float(nearest_distance(points[i:i + 1], tris)[0])
+                if spheres is not None:
+                    d = min(d, float(spheres.surface_distance(points[i:i + 1]).min()))
                 raise fail(sidecar, f"{where} point {i} {vector_text(points[i])} lies on no surface of {file.name}: "
                                     f"the nearest is {d:.3g} away (tolerance {base:.3g})"
                                     + (f"; {len(missing) - 1} more point(s) too" if len(missing) > 1 else ""))
-            shape_of = owner[index]
+            on_ball = ball >= 0
+            index[on_ball] = -1
+            shape_of = np.where(on_ball, -1 if spheres is None else spheres.owner[np.maximum(ball, 0)], owner[index])
             normals_front = front[index]
+            if on_ball.any():
+                normals_front[on_ball] = spheres.normals_at(ball[on_ball], closest[on_ball])
             moved = np.linalg.norm(closest - points, axis=1)
             analytic = np.array([shapes[k].deviation > 0 for k in shape_of])
             if analytic.any() and moved[analytic].max() > base:
@@ -281,6 +294,34 @@ def file_receivers(side: dict[str, Any], shapes: list[Shape], vertices: np.ndarr
     return rx, notes, np.unique(shape_of)
 
 
+def _diagonal(vertices: np.ndarray, spheres: Spheres | None) -> float:
+    """The diagonal of the box around the scene's vertices and analytic spheres."""
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    if spheres is not None:
+        lo = np.minimum(lo, (spheres.centers - spheres.radii[:, None]).min(axis=0))
+        hi = np.maximum(hi, (spheres.centers + spheres.radii[:, None]).max(axis=0))
+    return float(np.linalg.norm(hi - lo))
+
+
+def _on_spheres(spheres: Spheres | None, points: np.ndarray, index: np.ndarray, closest: np.ndarray, base: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The analytic sphere each point lies on (within ``base`` of its surface and no
+    farther than the triangle ``locate`` found), −1 elsewhere, and the points with those
+    moved radially onto their sphere."""
+    ball = np.full(len(points), -1, np.int64)
+    if spheres is None:
+        return ball, closest
+    dist = spheres.surface_distance(points)
+    nearest = np.argmin(dist, axis=1)
+    d = dist[np.arange(len(points)), nearest]
+    to_triangle = np.where(index >= 0, np.linalg.norm(closest - points, axis=1), np.inf)
+    take = (d <= base) & (d <= to_triangle)
+    ball[take] = nearest[take]
+    closest = closest.copy()
+    closest[take] = sphere_points(spheres, nearest[take], points[take])
+    return ball, closest
+
+
 def _group_viewer(group: dict[str, Any], side: dict[str, Any], sensor: Viewer | str | None, where: str,
                   file: Path, sidecar: Path) -> Viewer:
     if group["view"] is not None:
@@ -379,14 +420,14 @@ def _analytic_pixels(hits: Any, shapes: list[Shape]) -> Any:
 
 
 def camera_receivers(camera: Camera, shapes: list[Shape], vertices: np.ndarray, triangles: np.ndarray,
-                     emission: np.ndarray, owner: np.ndarray, file: Path, device: str, mitsuba_scene: Any = None
-                      ) -> tuple[Receivers, list[str], np.ndarray]:
+                     emission: np.ndarray, owner: np.ndarray, file: Path, device: str, mitsuba_scene: Any = None,
+                     spheres: Spheres | None = None) -> tuple[Receivers, list[str], np.ndarray]:
     """The camera's pixels as receivers, each with the material of the shape it sees (a
     textured parameter evaluated by Mitsuba at the pixel's own point) and Mitsuba's
     shading normal there."""
     unshaded = [f"shape {s.label!r} ({s.material.unshaded})" if s.material.problem else None for s in shapes]
     hits = cast_camera(camera, vertices, triangles, emission, owner, [s.material.twosided for s in shapes], device,
-                       _corner_normals(shapes, vertices, triangles), unshaded)
+                       _corner_normals(shapes, vertices, triangles), unshaded, spheres)
     hits = _analytic_pixels(hits, shapes)
     check_receiver_count(len(hits.positions), f"the camera ({camera.width} × {camera.height})", file)
     for k in np.unique(hits.mesh):
@@ -400,7 +441,7 @@ def camera_receivers(camera: Camera, shapes: list[Shape], vertices: np.ndarray, 
     fields = camera_receiver_fields(hits, surfaces, lambda m, c: shapes[m].material.problem, file)
     starts = np.cumsum([0] + [len(s.faces) for s in shapes])
     curved = np.array([s.analytic_normal is not None for s in shapes])[hits.mesh][:, None]
-    diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+    diagonal = _diagonal(vertices, spheres)
     textured, texture_notes = _texture_values(
         mitsuba_scene, file, shapes, hits.mesh, hits.triangles - starts[hits.mesh], hits.positions,
         np.where(curved, hits.normals, hits.geometric_normals), ON_SURFACE * diagonal,

@@ -1,8 +1,10 @@
-"""Shapes as triangles: every triangle mesh (obj, ply, serialized, cube, ...) as Mitsuba
-holds it, already in world space; ``rectangle`` as its two triangles; ``sphere``,
-``disk`` and ``cylinder`` tessellated (``SPHERE_SUBDIVISIONS``, ``DISK_SEGMENTS``,
-``CYLINDER_SEGMENTS``) with their vertices pushed out so that each tessellation keeps the
-analytic area, and its error reported (``TESSELLATION_ERROR``).  Each triangle winds
+"""Shapes: every triangle mesh (obj, ply, serialized, cube, ...) as Mitsuba holds it,
+already in world space; ``rectangle`` as its two triangles; ``sphere`` as an analytic
+sphere (scenes/spheres.py), intersected and sampled exactly as Mitsuba does, or
+tessellated where the receivers file says ``tessellate = true`` (for comparisons);
+``disk`` and ``cylinder`` tessellated (``DISK_SEGMENTS``, ``CYLINDER_SEGMENTS``).  A
+tessellation's vertices are pushed out so that it keeps the analytic area, and its
+error is reported (``TESSELLATION_ERROR``).  Each triangle winds
 counter-clockwise around the side Mitsuba calls the front (its shading normal, after
 ``flip_normals``): the side an area light emits on and a one-sided BSDF reflects on.
 Each shape carries its material (:mod:`.materials`) and area emitter (:mod:`.emitters`).
@@ -16,10 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trimesh
 
 from ...errors import fail
 from ..lambert import triangle_irradiance
+from ..spheres import SPHERE_SUBDIVISIONS, Spheres, tessellate_sphere
 from .emitters import DELTA_KINDS, EMITTER_PLUGINS, ENVIRONMENT_CLASSES, SUPPORTED_EMITTERS, area_radiance
 from .materials import Material, read_material
 from .parse import MitsubaSession, object_parameters, rgb_text, transform_matrix
@@ -28,7 +30,6 @@ from .parse import MitsubaSession, object_parameters, rgb_text, transform_matrix
 # the irradiance it casts at a unit distance stay within TESSELLATION_ERROR of the
 # analytic shape's (each load reports its own figures in Scene.notes):
 # an icosphere of 20·4^3 = 1280 triangles, a fan of 64 triangles, a tube of 2 × 128.
-SPHERE_SUBDIVISIONS = 3
 DISK_SEGMENTS = 64
 CYLINDER_SEGMENTS = 128
 TESSELLATION_ERROR = 1e-3
@@ -58,11 +59,15 @@ class Shape:
     # (P, 3) → (P, 3) Mitsuba's front normal of a curved analytic shape (sphere, cylinder)
     # at points of its tessellation, unnormalised: what Mitsuba shades with there
     analytic_normal: Any = None
+    # An analytic sphere (no triangles): (centre, radius, inward: its front is the inside)
+    sphere: tuple[np.ndarray, float, bool] | None = None
     notes: list[str] = field(default_factory=list)
 
 
-def read_shapes(session: MitsubaSession, scene: Any, file: Path, weights: np.ndarray, lit: bool = False) -> list[Shape]:
-    """The scene's shapes; ``lit``: an environment lights the scene, so it needs no area emitter."""
+def read_shapes(session: MitsubaSession, scene: Any, file: Path, weights: np.ndarray, lit: bool = False,
+                tessellate: bool = False) -> list[Shape]:
+    """The scene's shapes; ``lit``: an environment lights the scene, so it needs no area
+    emitter; ``tessellate``: spheres as triangles rather than analytic spheres."""
     mi = session.mi
     for emitter in scene.emitters():
         cls = emitter.class_name()
@@ -77,22 +82,24 @@ def read_shapes(session: MitsubaSession, scene: Any, file: Path, weights: np.nda
         label = shape.id() or f"{plugin} #{i + 1}"
         where = f"{file}: shape {label!r}"
         notes: list[str] = []
-        vertices, faces, deviation, shading, analytic_normal = _geometry(mi, shape, cls, where, notes)
+        vertices, faces, deviation, shading, analytic_normal, sphere = _geometry(mi, shape, cls, where, notes,
+                                                                                tessellate)
         radiance, emission = None, 0.0
         if shape.is_emitter():
             radiance, emission = area_radiance(mi, shape.emitter(), where, weights)
         material = read_material(mi, shape.bsdf(), where, weights, notes)
         s = Shape(label=label, plugin=plugin, vertices=vertices, faces=faces, radiance=radiance, emission=emission,
                   material=material, deviation=deviation, id=shape.id(), shading=shading,
-                  analytic_normal=analytic_normal)
+                  analytic_normal=analytic_normal, sphere=sphere)
+        tessellated = plugin in ("disk", "cylinder") or (plugin == "sphere" and sphere is None)
         if radiance is not None:
             s.notes.append(f"{label}: area emitter, radiance {emission:.6g} (linear sRGB {rgb_text(radiance)})"
                            + ("; 0 in this channel: it emits nothing here" if emission == 0 else ""))
-            if plugin in ("sphere", "disk", "cylinder"):
+            if tessellated:
                 s.notes.append(f"{label}: {_tessellation_note(mi, shape, plugin, vertices, faces)}")
         else:
             s.notes.append(f"{label}: {material.text}")
-            if plugin in ("sphere", "disk", "cylinder"):
+            if tessellated:
                 s.notes.append(f"{label}: {plugin} tessellated into {len(faces)} triangles (pushed out to keep its "
                                f"area)")
         s.notes += [f"{label}: {note}" for note in dict.fromkeys(notes)]
@@ -103,30 +110,36 @@ def read_shapes(session: MitsubaSession, scene: Any, file: Path, weights: np.nda
     return out
 
 
-def _geometry(mi: Any, shape: Any, cls: str, where: str, notes: list[str]
-              ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None, Any]:
+def _geometry(mi: Any, shape: Any, cls: str, where: str, notes: list[str], tessellate: bool = False
+              ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None, Any, Any]:
     """Vertices and faces of a shape, each face wound counter-clockwise around Mitsuba's
     front side; how far they stray from Mitsuba's surface (0 for triangle meshes); a
-    mesh's vertex normals, which Mitsuba shades with; and a curved analytic shape's front
-    normal as a function of the point, which Mitsuba shades with there."""
+    mesh's vertex normals, which Mitsuba shades with; a curved analytic shape's front
+    normal as a function of the point, which Mitsuba shades with there; and for an
+    analytic sphere (no faces) its (centre, radius, inward)."""
     kind = int(shape.shape_type())
     plugin = _SHAPE_PLUGINS.get(cls, cls.lower())
     flipped = bool(shape.has_flipped_normals())
     if kind == int(mi.ShapeType.Mesh):
         vertices, faces, shading = _mesh(mi, shape, where, notes)
-        return vertices, faces, 0.0, shading, None
+        return vertices, faces, 0.0, shading, None, None
     if kind in (int(mi.ShapeType.Rectangle), int(mi.ShapeType.Sphere), int(mi.ShapeType.Disk),
                 int(mi.ShapeType.Cylinder)):
         m = transform_matrix(object_parameters(mi, shape)["to_world"])
         if not np.all(np.isfinite(m)) or abs(np.linalg.det(m[:3, :3])) == 0:
             raise fail(where, f"{plugin}: its to_world is singular or not finite")
+        sign = -1.0 if flipped else 1.0
+        if kind == int(mi.ShapeType.Sphere) and not tessellate:
+            radius = _similarity_scale(m, where, "sphere")
+            centre = m[:3, 3].copy()
+            return (np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0.0, None, lambda p: sign * (p - centre),
+                    (centre, radius, flipped))
         builder = {int(mi.ShapeType.Rectangle): _rectangle, int(mi.ShapeType.Sphere): _sphere,
                    int(mi.ShapeType.Disk): _disk, int(mi.ShapeType.Cylinder): _cylinder}[kind]
         vertices, faces, normal, deviation = builder(m, where)
-        sign = -1.0 if flipped else 1.0
         curved = kind in (int(mi.ShapeType.Sphere), int(mi.ShapeType.Cylinder))
         analytic = (lambda p: sign * normal(p)) if curved else None
-        return vertices, _orient(vertices, faces, normal, sign), deviation, None, analytic
+        return vertices, _orient(vertices, faces, normal, sign), deviation, None, analytic, None
     if plugin in ("instance", "shapegroup"):
         raise fail(where, f"{plugin}s are not supported; warpis supports {SUPPORTED_SHAPES}")
     raise fail(where, f"shape type {plugin!r} is not supported; warpis supports {SUPPORTED_SHAPES}")
@@ -207,22 +220,11 @@ def _similarity_scale(m: np.ndarray, where: str, plugin: str) -> float:
 
 def _sphere(m: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray, Any, float]:
     """Mitsuba's sphere (unit, centred at 0, through to_world, which holds its centre and
-    radius): an icosphere pushed out to the sphere's area."""
+    radius) tessellated: an icosphere pushed out to the sphere's area (scenes/spheres.py)."""
     radius = _similarity_scale(m, where, "sphere")
     centre = m[:3, 3].copy()
-    ico = trimesh.creation.icosphere(subdivisions=SPHERE_SUBDIVISIONS, radius=1.0)
-    local = np.array(ico.vertices, dtype=np.float64)
-    local /= np.linalg.norm(local, axis=1, keepdims=True)
-    faces = np.array(ico.faces, dtype=np.int64)
-    v = local[faces]
-    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum()
-    push = math.sqrt(4.0 * math.pi / area)
-    # Farthest from the sphere: the vertices (out by push − 1) or a face's nearest point
-    # to the centre (at most its plane's distance inside).
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    plane = np.abs(np.einsum("fj,fj->f", n / np.linalg.norm(n, axis=1, keepdims=True), v[:, 0])) * push
-    deviation = radius * max(push - 1.0, float(1.0 - plane.min()))
-    return _apply(m, push * local), faces, lambda c: c - centre, deviation
+    vertices, faces, deviation = tessellate_sphere(centre, radius, rotation=m[:3, :3] / radius)
+    return vertices, faces, lambda c: c - centre, deviation
 
 
 def _ring(segments: int, radius: float) -> np.ndarray:
@@ -363,6 +365,18 @@ def _tessellation_note(mi: Any, shape: Any, plugin: str, vertices: np.ndarray, f
 
 def _percent(x: float) -> str:
     return "0%" if abs(x) < 1e-12 else f"{100 * x:+.2g}%"
+
+
+def shape_spheres(shapes: list[Shape]) -> Spheres | None:
+    """The analytic spheres among ``shapes`` (their owner: the shape's index), or None."""
+    rows = [(k, s) for k, s in enumerate(shapes) if s.sphere is not None]
+    if not rows:
+        return None
+    return Spheres(centers=np.array([s.sphere[0] for _, s in rows], np.float64),
+                   radii=np.array([s.sphere[1] for _, s in rows], np.float64),
+                   emission=np.array([s.emission for _, s in rows], np.float64),
+                   inward=np.array([int(s.sphere[2]) for _, s in rows], np.int32),
+                   owner=np.array([k for k, _ in rows], np.int32))
 
 
 def concatenate_shapes(shapes: list[Shape]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -177,6 +177,9 @@ def planar_grid(group: dict[str, Any], shapes: list[Shape], base: float, sidecar
         raise fail(sidecar, f"{where}: grid shape {sid!r}: no shape with that id in {file.name} (ids: {ids})")
     index = matches[0]
     s = shapes[index]
+    if s.sphere is not None:
+        raise fail(sidecar, f"{where}: grid: shape {sid!r} is not planar (an analytic sphere); a grid needs a planar "
+                            f"shape: list points instead")
     tris = s.vertices[s.faces]
     cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     areas = np.linalg.norm(cross, axis=1)
