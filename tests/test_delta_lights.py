@@ -35,13 +35,13 @@ from warpis.kernels.engine import run_trials  # noqa: E402
 from warpis.scenes.delta import DeltaLights  # noqa: E402
 from warpis.scenes.mitsuba import load_mitsuba  # noqa: E402
 
-LIGHTS = """  <emitter type="point" id="bulb"><point name="position" x="0.5" y="1.5" z="0.2"/>
+LIGHTS = """  <emitter type="point" id="bulb"><point name="position" x="-0.5" y="0.9" z="0.5"/>
     <rgb name="intensity" value="4, 3, 2"/></emitter>
   <emitter type="spot" id="spot">
     <transform name="to_world"><lookat origin="-1, 2, 0" target="-1, 0, 0" up="0, 0, 1"/></transform>
     <rgb name="intensity" value="20, 20, 20"/><float name="cutoff_angle" value="25"/>
     <float name="beam_width" value="15"/></emitter>
-  <emitter type="directional" id="sun"><vector name="direction" x="0.3" y="-1" z="-0.2"/>
+  <emitter type="directional" id="sun"><vector name="direction" x="1" y="-0.5" z="-0.2"/>
     <rgb name="irradiance" value="2, 2, 2"/></emitter>
 """
 SCENE = """<scene version="3.0.0">
@@ -68,11 +68,15 @@ def folder(tmp_path_factory):
     path = tmp_path_factory.mktemp("delta")
     (path / "scene.xml").write_text(SCENE.format(lights=LIGHTS))
     (path / "dark.xml").write_text(SCENE.format(lights=""))
-    centre = np.array([0.8, 0.2, 0.8])
-    sun = np.array([0.3, -1.0, -0.2]) / np.linalg.norm([0.3, -1.0, -0.2])
-    bulb = centre - np.array([0.5, 1.5, 0.2])
-    # The floor points whose rays to the sun and to the bulb cross the box's centre.
-    behind = {"sun": centre - sun * (centre[1] / sun[1]), "bulb": centre - bulb * (centre[1] / bulb[1])}
+    # A point inside the box near its top: the floor points whose rays to the sun and to the
+    # bulb cross it lie in the box's shadows, beside the box (its footprint is x, z in
+    # [0.6, 1.0]), where the area lamp still lights them.
+    inside = np.array([0.8, 0.35, 0.8])
+    sun = np.array([1.0, -0.5, -0.2]) / np.linalg.norm([1.0, -0.5, -0.2])
+    bulb = inside - np.array([-0.5, 0.9, 0.5])
+    behind = {"sun": inside - sun * (inside[1] / sun[1]), "bulb": inside - bulb * (inside[1] / bulb[1])}
+    for p in behind.values():
+        assert not (0.6 <= p[0] <= 1.0 and 0.6 <= p[2] <= 1.0), p
     points = [tuple(behind[p].tolist()) if isinstance(p, str) else p for p in POINTS]
     rows = ", ".join(f"[{x!r}, {y!r}, {z!r}]" for x, y, z in points)
     for stem in ("scene", "dark"):
@@ -113,8 +117,10 @@ def test_delta_terms_are_mitsubas(folder):
     assert cone[0] == pytest.approx(20.0 / 4) and 0.01 < falloff < 0.99, (cone, falloff)  # in the falloff band
     assert cone[2] == 0  # outside the cone
     assert terms[4, bulb] == 0 < weights[4, bulb] and terms[5, sun] == 0 < weights[5, sun]  # the box hides them
+    assert terms[4, sun] > 0  # the bulb's shadow is in the sun
     refs = reference(scene, closed_form=False)
     mine = np.array([ref.delta for ref in refs])
+    assert refs[4].value - refs[4].delta > 0 and refs[5].value - refs[5].delta > 0  # the lamp still lights them
     np.testing.assert_allclose(mine, terms.sum(axis=1), rtol=1e-5, atol=1e-7)
 
 

@@ -17,7 +17,6 @@ DeviceScene (not just ``.data``) until its launches are done.
 from __future__ import annotations
 
 import os
-import re
 import sys
 import threading
 from collections import OrderedDict

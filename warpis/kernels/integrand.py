@@ -63,7 +63,6 @@ from .warps import INV_2PI, INV_PI
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes import Scene
-    from ..scenes.description import Receivers
 
 __all__ = ["MATERIALS", "ShadingPoint", "brdf", "delta_terms", "evaluate_integrand", "integrand", "shading_point"]
 

@@ -60,11 +60,6 @@ def sphere_roots(o: wp.vec3, w: wp.vec3, c: wp.vec3d, r: wp.float64) -> wp.vec2d
 
 
 @wp.func
-def sphere_center(scene: SceneData, s: wp.int32) -> wp.vec3d:
-    return scene.sphere_center[s]
-
-
-@wp.func
 def _nearer_sphere(best: SphereCrossing, scene: SceneData, s: wp.int32, o: wp.vec3, w: wp.vec3, t_min: float,
                    t_max: float) -> SphereCrossing:
     roots = sphere_roots(o, w, scene.sphere_center[s], scene.sphere_radius[s])

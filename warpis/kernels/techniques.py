@@ -71,7 +71,7 @@ from .environment import environment_pdf, sample_environment
 from .integrand import PHONG as PHONG_MATERIAL
 from .integrand import ROUGHCONDUCTOR, ROUGHPLASTIC, ShadingPoint, shading_point
 from .microfacet import conductor_pdf, conductor_sample, plastic_pdf, plastic_sample
-from .spheres import NO_ROOT, cone_sample, into_sphere, one_minus_cos_max, sphere_area_point, sphere_roots
+from .spheres import cone_sample, into_sphere, one_minus_cos_max, sphere_area_point, sphere_roots
 from .warps import (PI64, cosine_hemisphere_pdf, phong_lobe_pdf, square_to_cosine_hemisphere, square_to_phong_lobe,
                     square_to_spherical_triangle, square_to_triangle, square_to_uniform_hemisphere, to_world,
                     triangle_solid_angle, uniform_hemisphere_pdf)

@@ -49,8 +49,9 @@ from .materials import NONE_ETA, SUPPORTED_BSDFS
 from .parse import MitsubaSession, is_grey
 from .receivers import ON_SURFACE, camera_receivers, file_receivers, read_receivers_file, receivers_path
 from .sensors import first_camera, first_viewer
-from .shapes import (CYLINDER_SEGMENTS, DISK_SEGMENTS, SPHERE_SUBDIVISIONS, SUPPORTED_SHAPES, TESSELLATION_ERROR,
-                     concatenate_shapes, read_shapes, shape_spheres)
+from ..spheres import SPHERE_SUBDIVISIONS
+from .shapes import (CYLINDER_SEGMENTS, DISK_SEGMENTS, SUPPORTED_SHAPES, TESSELLATION_ERROR, concatenate_shapes,
+                     read_shapes, shape_spheres)
 
 __all__ = ["CHANNELS", "CYLINDER_SEGMENTS", "DEFAULT_CHANNEL", "DISK_SEGMENTS", "NONE_ETA", "ON_SURFACE",
            "SPHERE_SUBDIVISIONS", "SUPPORTED_BSDFS", "SUPPORTED_EMITTERS", "SUPPORTED_SHAPES", "TESSELLATION_ERROR",
