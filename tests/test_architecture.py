@@ -23,7 +23,7 @@ FLOORS = {
     "warpis.kernels": 2,
     "warpis.analysis": 3,
     "warpis.runs": 4, "warpis.plots": 4,
-    "warpis.cli": 5, "warpis.testing": 5, "warpis": 5,
+    "warpis.cli": 5, "warpis.testing": 5, "warpis.check": 5, "warpis": 5,
 }
 
 

@@ -26,7 +26,10 @@ from .kernels.rng import uniform  # noqa: E402
 from .kernels.techniques import register_technique, unregister_technique  # noqa: E402
 from .stats import variance_interval  # noqa: E402
 from .analysis import quadrature as _quadrature  # noqa: E402,F401  (registers the optimal oracle's solver)
+from .check.entries import (register_numpy_combiner, register_numpy_technique,  # noqa: E402
+                            unregister_numpy_combiner, unregister_numpy_technique)
 
-__all__ = ["Environment", "Scene", "ShadingPoint", "WarpisError", "bundled_scenes", "load_scene", "register_pattern",
-           "register_technique", "run_moments", "run_trials", "uniform", "unregister_pattern", "unregister_technique",
-           "variance_interval", "__version__"]
+__all__ = ["Environment", "Scene", "ShadingPoint", "WarpisError", "bundled_scenes", "load_scene",
+           "register_numpy_combiner", "register_numpy_technique", "register_pattern", "register_technique",
+           "run_moments", "run_trials", "uniform", "unregister_numpy_combiner", "unregister_numpy_technique",
+           "unregister_pattern", "unregister_technique", "variance_interval", "__version__"]

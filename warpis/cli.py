@@ -1,4 +1,4 @@
-"""The ``warpis`` command: scenes, info, reference, estimate, verify, image, study, demo.
+"""The ``warpis`` command: scenes, info, reference, estimate, verify, image, study, demo, check.
 
 Bad input (files, scenes, estimator specs, options) ends with one line on stderr,
 ``warpis: error: <file or option>: <problem>``, and exit status 2; nothing is written.
@@ -100,7 +100,7 @@ def _load(args: argparse.Namespace):
 
 
 def _summary_line(s: dict) -> str:
-    return (f"{s['scene']:<22} {s['triangles']:>9} {s['emitter_triangles']:>9} {s['receivers']:>9}"
+    return (f"{s['scene']:<22} {s['triangles']:>9} {s['emitter_triangles'] + s['sphere_lights']:>9} {s['receivers']:>9}"
             f" {s['emitter_area']:>12.5g} {s['total_power']:>12.5g}")
 
 
@@ -140,6 +140,14 @@ def cmd_info(args: argparse.Namespace) -> int:
             "area": float(scene.emitter_areas[mine].sum()),
             "power": float((scene.emitter_areas[mine] * scene.emitter_radiance[mine]).sum()),
         })
+    spheres = scene.spheres
+    for k in scene.sphere_lights:
+        area = float(spheres.areas[k])
+        emitters.append({"mesh": scene.mesh_names[spheres.owner[k]], "triangles": 0,
+                         "sphere": {"center": spheres.centers[k].tolist(), "radius": float(spheres.radii[k]),
+                                    "inward": bool(spheres.inward[k])},
+                         "radiance": float(spheres.emission[k]), "area": area,
+                         "power": area * float(spheres.emission[k])})
     groups = [{"name": name, "receivers": int((rx.group == g).sum()),
                "material": rx.material_name(int(np.flatnonzero(rx.group == g)[0]))}
               for g, name in enumerate(rx.group_names)]
@@ -160,7 +168,11 @@ def cmd_info(args: argparse.Namespace) -> int:
     lines.append("")
     lines.append(f"{'emitter mesh':<28} {'triangles':>9} {'radiance':>10} {'area':>10} {'power':>10}")
     for e in emitters:
-        lines.append(f"{e['mesh']:<28} {e['triangles']:>9} {e['radiance']:>10.4g} {e['area']:>10.4g} {e['power']:>10.4g}")
+        shape = "sphere" if "sphere" in e else e["triangles"]
+        lines.append(f"{e['mesh']:<28} {shape:>9} {e['radiance']:>10.4g} {e['area']:>10.4g} {e['power']:>10.4g}")
+    if spheres is not None:
+        lines.append(f"{len(spheres)} analytic sphere(s), {len(scene.sphere_lights)} of them emitting: intersected and "
+                     f"sampled exactly (light-solid-angle samples the cone each subtends)")
     if env is not None:
         width, height = env.resolution
         lines.append(f"environment ({env.kind}): {width} × {height} texels, ∫ L dω = {env.power:.6g} over the sphere, "
@@ -376,6 +388,13 @@ def _baseline(text: str | None, estimators) -> int:
     if spec not in specs:
         raise WarpisError(f"--baseline: {text!r} is not one of the --estimator specs ({', '.join(specs)})")
     return specs.index(spec)
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """``warpis check``: every applicable check on one subject (warpis/check/); 1 when one fails."""
+    from .check.command import run_command
+
+    return run_command(args, _emit)
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -669,6 +688,18 @@ def build_parser() -> argparse.ArgumentParser:
     cluster_options(c)
     progress_options(c)
     c.set_defaults(func=cmd_demo)
+
+    from .check.command import add_arguments as check_arguments
+
+    c = sub.add_parser("check", help="every applicable check on a technique, a Mitsuba file's BSDFs or a combiner: "
+                                     "a verdict table (exit 1 when one fails) and a figure per check",
+                       description="check a technique (--technique), every BSDF of a Mitsuba XML file (--bsdfs) or a "
+                                   "combiner's weights (--combiner): chi-square, pdf integral, pdf at the sample, "
+                                   "zero pdf, measure, unbiasedness, weight, eval quadrature, reciprocity, energy, "
+                                   "weights (docs/check.md); exit 0 when all pass, 1 when one fails",
+                       parents=[plugin])
+    check_arguments(c)
+    c.set_defaults(func=cmd_check)
     return p
 
 

@@ -83,6 +83,9 @@ class Registry(MutableMapping[str, E], Generic[E]):
     def __init__(self, axis: str, entries: Iterable[E]):
         self.axis = axis
         self._entries: dict[str, E] = {}
+        # Names registered outside this registry (a numpy technique for `warpis check`),
+        # each with the line that says why it cannot be used here.
+        self.elsewhere: dict[str, str] = {}
         for entry in entries:
             self[entry.name] = entry
 
@@ -110,7 +113,10 @@ class Registry(MutableMapping[str, E], Generic[E]):
         return f"Registry({self.axis!r}, {list(self._entries)})"
 
     def unknown(self, name: str) -> str:
-        """The one-line problem of a name that is not registered, listing the valid ones."""
+        """The one-line problem of a name that is not registered, listing the valid ones
+        (or, for a name known elsewhere, why it cannot be used here)."""
+        if name in self.elsewhere:
+            return self.elsewhere[name]
         return f"unknown {self.axis} {name!r} (valid: {', '.join(self)})"
 
     def lookup(self, name: str) -> E:
