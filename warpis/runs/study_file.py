@@ -63,7 +63,7 @@ DEMO = {
     "name": "demo",
     "description": "Ten estimators of direct illumination on occluded-quad: lit, penumbra and umbra receivers.",
     "seed": 1,
-    "trials": 20000,
+    "trials": 5000,
     "n": [4, 16, 64, 256],
     "scenes": ["occluded-quad"],
     "estimators": dict(DEMO_ESTIMATORS),
