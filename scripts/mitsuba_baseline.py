@@ -53,10 +53,8 @@ Embree's packet queries.
 
 from __future__ import annotations
 
-import glob
 import importlib.util
 import math
-import os
 import subprocess
 import sys
 import time
@@ -69,6 +67,7 @@ from typing import Any
 
 import numpy as np
 
+from warpis.check.mitsuba_bsdfs import LLVM_GLOB, llvm_library
 from warpis.errors import WarpisError
 from warpis.kernels.device import upload
 from warpis.kernels.estimators import parse_estimator
@@ -85,7 +84,6 @@ MODES = ("closest", "anyhit")
 # enough that a chunk's arrays (16 MiB per 4-byte value per sample; Dr.Jit keeps a few
 # dozen alive across the ray query) stay at a few hundred MB.
 CHUNK_SAMPLES = 1 << 22
-LLVM_GLOB = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19*"
 
 # Relative tolerances of the planarity check: float32 rounding of the coordinates is
 # 6e-8 of their magnitude, a tilt or step that matters is far larger.
@@ -97,20 +95,6 @@ _LAMBERT = MATERIALS["lambert"].code
 
 
 # --------------------------------------------------------------------------- import
-
-
-def llvm_library() -> str | None:
-    """The libLLVM for Dr.Jit: ``DRJIT_LIBLLVM_PATH`` if set, else the first
-    ``libLLVM.so.19*`` of the system (exported as ``DRJIT_LIBLLVM_PATH`` so that Dr.Jit,
-    and any child process, loads it), else None."""
-    path = os.environ.get("DRJIT_LIBLLVM_PATH")
-    if path:
-        return path
-    found = sorted(glob.glob(LLVM_GLOB))
-    if not found:
-        return None
-    os.environ["DRJIT_LIBLLVM_PATH"] = found[0]
-    return found[0]
 
 
 def load_mitsuba() -> ModuleType:

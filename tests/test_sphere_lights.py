@@ -46,6 +46,7 @@ from test_techniques import Window
 
 import warpis
 from warpis.analysis.reference import reference
+from warpis.check.mitsuba_bsdfs import LLVM_GLOB
 from warpis.kernels.engine import run_trials
 from warpis.kernels.techniques import direction_pdf, sample_directions
 from warpis.scenes.lambert import sphere_irradiance
@@ -295,7 +296,6 @@ PENUMBRA_XML = """<scene version="3.0.0">
 PENUMBRA_X = np.concatenate([[-0.2955, -0.2747], np.linspace(-0.255, 0.255, 12)])
 MITSUBA_CHUNK = 1 << 20
 MITSUBA_CHUNKS = 2
-LLVM_GLOB = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19*"
 needs_llvm = pytest.mark.skipif(
     not (os.environ.get("DRJIT_LIBLLVM_PATH") or glob.glob(LLVM_GLOB)),
     reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "

@@ -51,18 +51,7 @@ def _option_type(check: Callable[[str], Any]) -> Callable[[str], Any]:
     return convert
 
 
-def _indices(text: str) -> list[int]:
-    parts = [t.strip() for t in text.split(",") if t.strip()]
-    if not parts:
-        raise WarpisError("--receivers is empty")
-    out = [limits.count_text(t, "--receivers", minimum=-limits.MAX_COUNT) for t in parts]
-    negative = [i for i in out if i < 0]
-    if negative:
-        raise WarpisError(f"--receivers: receiver {negative[0]} does not exist (indices start at 0)")
-    return out
-
-
-_receiver_list = _option_type(_indices)
+_receiver_list = _option_type(limits.receiver_list_text)
 _positive = _option_type(lambda text: limits.count_text(text, "count"))
 _seed = _option_type(lambda text: limits.seed(limits.count_text(text, "--seed", minimum=0, maximum=2**63)))
 

@@ -80,6 +80,19 @@ def count_text(text: str, what: str, minimum: int = 1, maximum: int = MAX_COUNT)
     return count(int(stripped), what, minimum, maximum)
 
 
+def receiver_list_text(text: str, what: str = "--receivers") -> list[int]:
+    """Comma-separated receiver indices written as text: each a count from 0; a one-line
+    WarpisError for an empty list, a non-integer or a negative index."""
+    parts = [t.strip() for t in text.split(",") if t.strip()]
+    if not parts:
+        raise WarpisError(f"{what} is empty")
+    out = [count_text(t, what, minimum=-MAX_COUNT) for t in parts]
+    negative = [i for i in out if i < 0]
+    if negative:
+        raise WarpisError(f"{what}: receiver {negative[0]} does not exist (indices start at 0)")
+    return out
+
+
 def seed(value: Any, what: str = "seed") -> int:
     """A seed of the counter-based generator: an integer in [0, 2^32)."""
     s = _integral(value)

@@ -53,16 +53,7 @@ def add_arguments(c: argparse.ArgumentParser) -> None:
 
 
 def _receiver_list(text: str | None) -> list[int] | None:
-    if text is None:
-        return None
-    parts = [t.strip() for t in text.split(",") if t.strip()]
-    if not parts:
-        raise WarpisError("--receivers: names no receiver")
-    out = [limits.count_text(t, "--receivers", minimum=-limits.MAX_COUNT) for t in parts]
-    negative = [i for i in out if i < 0]
-    if negative:
-        raise WarpisError(f"--receivers: receiver {negative[0]} does not exist (indices start at 0)")
-    return out
+    return None if text is None else limits.receiver_list_text(text)
 
 
 def _options(args: argparse.Namespace) -> dict[str, Any]:
