@@ -32,6 +32,7 @@ from ..limits import check_device
 from ..vocabulary import MATERIALS
 from .bvh import PARALLEL, PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, magnitude, upload_wide_bvh, vec64
 from .environment import EnvironmentData
+from .precompiled import seed_kernel_cache
 
 if TYPE_CHECKING:
     from ..scenes import Scene
@@ -158,6 +159,7 @@ def quiet_warp() -> None:
     finally:
         os.dup2(saved, 2)
         os.close(saved)
+    seed_kernel_cache()
 
 
 _cache: OrderedDict[tuple[str, str], DeviceScene] = OrderedDict()
@@ -167,6 +169,7 @@ _cache_lock = threading.Lock()
 def upload(scene: Scene, device: str | None = None) -> DeviceScene:
     """The Warp side of ``scene`` on ``device`` (default ``scene.device``), built on first
     use and then shared by every scene with the same digest."""
+    seed_kernel_cache()  # before the first launch of any kernel that takes the upload
     name = scene.device if device is None else check_device(device)
     alias = wp.get_device(name).alias  # "cuda" and "cuda:0" share an entry
     key = (scene.digest, alias)

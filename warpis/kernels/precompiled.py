@@ -1,0 +1,116 @@
+"""warpis's built-in kernels, compiled ahead of time and shipped with the package.
+
+Warp compiles a module the first time one of its kernels launches (the trial kernel's
+module alone takes 20–50 s on two cores) and keeps the object in its kernel cache.
+``scripts/precompile_kernels.py`` builds the modules named in :data:`MODULES` ahead of
+time (``wp.load_module`` into an empty kernel cache, as a CPU launch loads them) and keeps
+each object and its metadata in ``warpis/kernels/precompiled/``;
+:func:`seed_kernel_cache` copies them into Warp's kernel cache on first use, where Warp's
+own lookup finds them.  Nothing else changes: the launch, the flags, the results.
+
+Warp names each object by the module's content hash (the source of every kernel and
+function it reaches, and the compile options) and by a hash of the LLVM version, the
+target triple and, under Warp's default ``-march=native``, the host CPU's instruction-set
+features.  A shipped object is therefore found only by the very code it was built from,
+on a CPU with the very features it was built for; anywhere else Warp compiles as it
+always does.  The Warp version is checked here, because the objects of one version are
+not those of another and Warp keeps a cache folder per version.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import warp as wp
+
+# The modules whose kernels warpis launches (user techniques and patterns build their own).
+# A CPU launch loads a module for block_dim 1, which is part of its content hash; Warp's
+# compile_aot_module builds for the module's block_dim option (256) instead, which no
+# CPU launch would find.
+MODULES = (
+    "warpis.kernels.estimators",
+    "warpis.analysis.quadrature",
+    "warpis.kernels.techniques",
+    "warpis.kernels.device",
+    "warpis.kernels.integrand",
+    "warpis.kernels.camera",
+)
+CPU_BLOCK_DIM = 1
+SHIPPED = Path(__file__).resolve().parent / "precompiled"
+MANIFEST = SHIPPED / "manifest.json"
+
+_seeded = False
+_seed_lock = threading.Lock()
+
+
+def seed_kernel_cache() -> None:
+    """Copy the shipped objects into Warp's kernel cache (once per process; a copy that
+    is already there is left alone).  Starts Warp if it has not started."""
+    global _seeded
+    with _seed_lock:
+        if _seeded:
+            return
+        _seeded = True
+        wp.init()
+        shipped = shipped_folders()
+        if not shipped or wp.config.kernel_cache_dir is None:
+            return
+        cache = Path(wp.config.kernel_cache_dir)
+        for folder in shipped:
+            try:
+                _copy_missing(folder, cache / folder.name)
+            except OSError:  # a read-only or full cache: Warp compiles, as without this
+                return
+
+
+def shipped_folders() -> list[Path]:
+    """The shipped module folders usable by this Warp (none where its version differs)."""
+    try:
+        manifest = json.loads(MANIFEST.read_text())
+    except (OSError, ValueError):
+        return []
+    if manifest.get("warp") != wp.config.version:
+        return []
+    return [SHIPPED / name for name in manifest.get("folders", []) if (SHIPPED / name).is_dir()]
+
+
+def module_folders() -> dict[str, str]:
+    """Each of :data:`MODULES` → the cache folder Warp names by its current content, as a
+    CPU launch loads it (``wp_<module>_<hash>``).  Hashing compiles nothing.  The modules
+    must have been imported (``import warpis`` imports them all): this floor does not
+    reach up for the analysis module."""
+    missing = [name for name in MODULES if name not in sys.modules]
+    if missing:
+        raise RuntimeError(f"import warpis before hashing its kernel modules (not imported: {', '.join(missing)})")
+    return {name: wp.get_module(name).get_module_identifier(block_dim=CPU_BLOCK_DIM) for name in MODULES}
+
+
+def stale_modules() -> list[str]:
+    """The modules of :data:`MODULES` whose current content has no shipped object for this
+    Warp version (``python scripts/precompile_kernels.py`` builds them)."""
+    shipped = {folder.name for folder in shipped_folders() if any(folder.glob("*.o"))}
+    return [name for name, folder in module_folders().items() if folder not in shipped]
+
+
+def _copy_missing(source: Path, target: Path) -> None:
+    """Copy each file of ``source`` that ``target`` lacks, the metadata before the object,
+    each through a temporary name and a rename, so that a process that looks at the same
+    moment sees a whole file or none."""
+    target.mkdir(parents=True, exist_ok=True)
+    for name in sorted(os.listdir(source), key=lambda n: not n.endswith(".meta")):
+        if (target / name).exists():
+            continue
+        fd, tmp = tempfile.mkstemp(dir=target, prefix=f".{name}.")
+        os.close(fd)
+        try:
+            shutil.copyfile(source / name, tmp)
+            os.replace(tmp, target / name)
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
