@@ -30,7 +30,7 @@ AGREEMENT = 0.99999  # the rate the issue asks for; measured: 1.0 on every scene
 TIE_RTOL = 1e-5
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _closest_kernel(bvh: WideBvh, mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
                     wide: wp.array(dtype=wp.int32), wide_sign: wp.array(dtype=wp.float32),
                     warp_face: wp.array(dtype=wp.int32), warp_sign: wp.array(dtype=wp.float32)):
@@ -43,7 +43,7 @@ def _closest_kernel(bvh: WideBvh, mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d
     warp_sign[i] = wp.where(q.result, q.sign, 0.0)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _any_kernel(bvh: WideBvh, mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
                 t_max: wp.array(dtype=wp.float32), wide: wp.array(dtype=wp.int32), warp_any: wp.array(dtype=wp.int32)):
     i = wp.tid()

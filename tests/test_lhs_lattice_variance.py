@@ -240,7 +240,7 @@ def test_kernel_lattice_sums_are_constant_off_the_dual(m):
 # --------------------------------------------------------------------------- the generator
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _generators(out: wp.array(dtype=wp.int32)):
     i = wp.tid()
     out[i] = patterns.lattice_generator(i + 1)

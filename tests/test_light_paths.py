@@ -29,7 +29,7 @@ PLANAR = ("occluded-quad", "heavy-occluder", "mitsuba-cornell-box")
 NOT_PLANAR = ("two-lights", "veach-plates", "mitsuba-veach-plates")
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _both_paths(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
                 u: wp.array(dtype=wp.vec2), dirs: wp.array(dtype=wp.vec3), own_pdf: wp.array(dtype=wp.float32),
                 summed_pdf: wp.array(dtype=wp.float32), f_known: wp.array(dtype=wp.float32),

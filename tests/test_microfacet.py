@@ -111,7 +111,7 @@ def pdf_of(material: wp.int32, table: wp.array2d(dtype=wp.float32), sp: ShadingP
     return mf.plastic_pdf(table, sp, wo)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def eval_kernel(material: wp.int32, prm: Params, table: wp.array2d(dtype=wp.float32), n: wp.array(dtype=wp.vec3),
                 wi: wp.array(dtype=wp.vec3), wo: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float),
                 pdf: wp.array(dtype=float)):
@@ -121,7 +121,7 @@ def eval_kernel(material: wp.int32, prm: Params, table: wp.array2d(dtype=wp.floa
     pdf[i] = pdf_of(material, table, sp, wo[i])
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def sample_kernel(material: wp.int32, prm: Params, table: wp.array2d(dtype=wp.float32), n: wp.vec3, wi: wp.vec3,
                   u: wp.array(dtype=wp.vec2), dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=float)):
     """Samples and the pdf at each (0 for a failed sample)."""
@@ -139,7 +139,7 @@ def sample_kernel(material: wp.int32, prm: Params, table: wp.array2d(dtype=wp.fl
     pdf[i] = p
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def view_kernel(material: wp.int32, prm: Params, table: wp.array2d(dtype=wp.float32), n: wp.vec3, wi: wp.vec3,
                 wo: wp.array(dtype=wp.vec3), rho: wp.array(dtype=float), pdf: wp.array(dtype=float)):
     """ρ and pdf at each wo for one view."""
@@ -149,7 +149,7 @@ def view_kernel(material: wp.int32, prm: Params, table: wp.array2d(dtype=wp.floa
     pdf[i] = pdf_of(material, table, sp, wo[i])
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def pdf_kernel(material: wp.int32, prm: Params, table: wp.array2d(dtype=wp.float32), n: wp.vec3, wi: wp.vec3,
                wo: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=float)):
     """pdf at each wo for one view."""
@@ -269,7 +269,7 @@ def mirror(n: np.ndarray, wi: np.ndarray) -> np.ndarray:
     return 2.0 * np.dot(n, wi) * n - wi
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def magnify_kernel(dirs: wp.array(dtype=wp.vec3d), axis: wp.vec3d, side: wp.vec3d, theta_c: wp.float64,
                    forward: wp.int32, out: wp.array(dtype=wp.vec3d), jac: wp.array(dtype=wp.float64)):
     """Magnifier.forward (forward = 1) or .inverse (0); jac: dω'/dω at the original direction."""

@@ -49,7 +49,7 @@ SAMPLES = (0, 1, 2, 255, 4_096, INT32_MAX)
 DIMS = (0, 1, 2)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _uniform_kernel(seed: wp.array(dtype=wp.uint32), receiver: wp.array(dtype=wp.int32),
                     trial: wp.array(dtype=wp.int32), technique: wp.array(dtype=wp.int32),
                     sample: wp.array(dtype=wp.int32), dim: wp.array(dtype=wp.int32), out: wp.array(dtype=wp.float32)):

@@ -523,7 +523,7 @@ DISTANCE_RTOL = 1e-4
 RANDOM_TARGETS = 200
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _cast_kernel(scene: SceneData, origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3),
                  face: wp.array(dtype=wp.int32), dist: wp.array(dtype=wp.float32),
                  sign: wp.array(dtype=wp.float32), radiance: wp.array(dtype=wp.float32)):

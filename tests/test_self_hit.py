@@ -130,7 +130,7 @@ def test_a_receiver_under_a_huge_tilted_emitter():
         assert np.all(np.abs(z) < Z_LIMIT), (estimator, mean, refs, z)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _queries(bvh: WideBvh, mesh: wp.uint64, x: wp.array(dtype=wp.vec3), nx: wp.vec3, d: wp.array(dtype=wp.vec3),
              lead: float, face: wp.array(dtype=wp.int32), blocked: wp.array(dtype=wp.int32)):
     i = wp.tid()

@@ -831,7 +831,7 @@ def test_light_area_quadrants_map_to_disjoint_halves(scenes):
     assert np.max(np.abs(frac - 1.0 / 32.0)) < 1e-3
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def _spherical_triangle_kernel(u: wp.array(dtype=wp.vec2), p: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d,
                                out: wp.array(dtype=wp.vec3d)):
     i = wp.tid()
