@@ -37,13 +37,11 @@ import sys
 import warp as wp
 import warpis
 import warpis.cli as cli
-from warpis.kernels.precompiled import seed_kernel_cache
 
 def loud_start():
     wp.init()
     wp.config.log_level = wp.LOG_INFO
     wp.config.quiet = False
-    seed_kernel_cache()
 
 cli.quiet_warp = loud_start
 sys.exit(cli.main(sys.argv[1:]))

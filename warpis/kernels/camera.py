@@ -9,6 +9,7 @@ import warp as wp
 
 from ..scenes.camera import register_ray_caster
 from .integrand import FAR
+from .precompiled import seed_kernel_cache
 from .spheres import NO_ROOT, sphere_roots
 
 
@@ -40,6 +41,7 @@ def first_hits(vertices: np.ndarray, triangles: np.ndarray, origin: np.ndarray, 
     """(P,) int32: the primitive each ray from ``origin`` along ``directions`` (P, 3) meets
     first — a triangle, T + s for sphere s of ``spheres`` — and −1 where it meets nothing,
     cast in float32 against a BVH of the triangles (float64 against the spheres)."""
+    seed_kernel_cache()  # this launch needs no upload, the other way into the shipped modules
     points = wp.array(np.ascontiguousarray(vertices, np.float32), dtype=wp.vec3, device=device)
     indices = wp.array(np.ascontiguousarray(triangles, np.int32).ravel(), dtype=wp.int32, device=device)
     mesh = wp.Mesh(points=points, indices=indices)  # held until the launch is done: the kernel knows it by id

@@ -159,7 +159,6 @@ def quiet_warp() -> None:
     finally:
         os.dup2(saved, 2)
         os.close(saved)
-    seed_kernel_cache()
 
 
 _cache: OrderedDict[tuple[str, str], DeviceScene] = OrderedDict()
@@ -169,7 +168,7 @@ _cache_lock = threading.Lock()
 def upload(scene: Scene, device: str | None = None) -> DeviceScene:
     """The Warp side of ``scene`` on ``device`` (default ``scene.device``), built on first
     use and then shared by every scene with the same digest."""
-    seed_kernel_cache()  # before the first launch of any kernel that takes the upload
+    seed_kernel_cache()  # before any launch that takes the upload (camera.first_hits is the other way in)
     name = scene.device if device is None else check_device(device)
     alias = wp.get_device(name).alias  # "cuda" and "cuda:0" share an entry
     key = (scene.digest, alias)

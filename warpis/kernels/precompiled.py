@@ -5,8 +5,9 @@ module alone takes 20–50 s on two cores) and keeps the object in its kernel ca
 ``scripts/precompile_kernels.py`` builds the modules named in :data:`MODULES` ahead of
 time (``wp.load_module`` into an empty kernel cache, as a CPU launch loads them) and keeps
 each object and its metadata in ``warpis/kernels/precompiled/``;
-:func:`seed_kernel_cache` copies them into Warp's kernel cache on first use, where Warp's
-own lookup finds them.  Nothing else changes: the launch, the flags, the results.
+:func:`seed_kernel_cache` copies them into Warp's kernel cache before the first launch
+(``device.upload`` and ``camera.first_hits``, the two ways into these modules), where
+Warp's own lookup finds them.  Nothing else changes: the launch, the flags, the results.
 
 Warp names each object by the module's content hash (the source of every kernel and
 function it reaches, and the compile options) and by a hash of the LLVM version, the
@@ -30,9 +31,6 @@ from pathlib import Path
 import warp as wp
 
 # The modules whose kernels warpis launches (user techniques and patterns build their own).
-# A CPU launch loads a module for block_dim 1, which is part of its content hash; Warp's
-# compile_aot_module builds for the module's block_dim option (256) instead, which no
-# CPU launch would find.
 MODULES = (
     "warpis.kernels.estimators",
     "warpis.analysis.quadrature",
@@ -41,6 +39,9 @@ MODULES = (
     "warpis.kernels.integrand",
     "warpis.kernels.camera",
 )
+# A CPU launch loads a module for block_dim 1, which is part of its content hash; Warp's
+# compile_aot_module builds for the module's block_dim option (256) instead, which no
+# CPU launch would find.
 CPU_BLOCK_DIM = 1
 SHIPPED = Path(__file__).resolve().parent / "precompiled"
 MANIFEST = SHIPPED / "manifest.json"
@@ -69,15 +70,26 @@ def seed_kernel_cache() -> None:
                 return
 
 
-def shipped_folders() -> list[Path]:
-    """The shipped module folders usable by this Warp (none where its version differs)."""
+def shipped_warp() -> str | None:
+    """The warp-lang version the shipped objects were built with (None: no usable manifest)."""
+    return _manifest().get("warp")
+
+
+def shipped_folders(any_warp: bool = False) -> list[Path]:
+    """The shipped module folders usable by this Warp: none where its version differs from
+    the one they were built with, unless ``any_warp`` (their content, not their use)."""
+    manifest = _manifest()
+    if not any_warp and manifest.get("warp") != wp.config.version:
+        return []
+    return [SHIPPED / name for name in manifest.get("folders", []) if (SHIPPED / name).is_dir()]
+
+
+def _manifest() -> dict:
     try:
         manifest = json.loads(MANIFEST.read_text())
     except (OSError, ValueError):
-        return []
-    if manifest.get("warp") != wp.config.version:
-        return []
-    return [SHIPPED / name for name in manifest.get("folders", []) if (SHIPPED / name).is_dir()]
+        return {}
+    return manifest if isinstance(manifest, dict) else {}
 
 
 def module_folders() -> dict[str, str]:
@@ -92,9 +104,10 @@ def module_folders() -> dict[str, str]:
 
 
 def stale_modules() -> list[str]:
-    """The modules of :data:`MODULES` whose current content has no shipped object for this
-    Warp version (``python scripts/precompile_kernels.py`` builds them)."""
-    shipped = {folder.name for folder in shipped_folders() if any(folder.glob("*.o"))}
+    """The modules of :data:`MODULES` whose current content has no shipped object
+    (``python scripts/precompile_kernels.py`` builds them).  Judged by the content hash
+    alone: a Warp release other than the objects' own leaves them unused, not stale."""
+    shipped = {folder.name for folder in shipped_folders(any_warp=True) if any(folder.glob("*.o"))}
     return [name for name, folder in module_folders().items() if folder not in shipped]
 
 
