@@ -1,8 +1,11 @@
 """Time to the first answer: ``warpis demo`` from a cold and from a warm cache, and what compiles.
 
 Each repeat makes two fresh, empty cache folders (Warp's kernel cache, ``WARP_CACHE_PATH``,
-and warpis's BVH cache, ``WARPIS_CACHE_DIR``) and runs ``warpis demo`` twice in fresh
-Python processes: *cold* (nothing compiled) and then *warm* (every kernel cached). The
+and warpis's cache of BVHs and theory results, ``WARPIS_CACHE_DIR``) and runs ``warpis demo``
+twice in fresh Python processes: *cold* (nothing compiled, no theory kept) and then *warm*
+(every kernel cached, every exact variance and moment kept by the cold run:
+``warpis/analysis/memo.py``), into two fresh output folders, and stops if the warm run's
+``results.csv`` differs from the cold run's in any column but the timing ones. The
 wall time of each run is that of the whole process, Python's start and ``import warpis``
 included. Warp's own module-load lines ("Module … took … ms (compiled)"), which warpis
 normally hides, are kept in the child and summed per module, so the table says which
@@ -18,6 +21,7 @@ machine's load beside the figures (printed at the start and at the end).
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import re
@@ -69,6 +73,17 @@ def run_demo(caches: Path, out: Path, threads: int | None) -> tuple[float, dict[
     return wall, dict(compiled), loads
 
 
+# Columns measured with a clock: the only ones a warm run may change.
+TIMING_COLUMNS = ("seconds", "seconds_per_estimate", "efficiency")
+
+
+def numbers(out: Path) -> list[list[str]]:
+    """The demo's results.csv without its timing columns."""
+    rows = list(csv.reader((out / "results.csv").open()))
+    keep = [k for k, name in enumerate(rows[0]) if name not in TIMING_COLUMNS]
+    return [[row[k] for k in keep] for row in rows]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3, help="cold + warm pairs (default 3)")
@@ -89,6 +104,8 @@ def main() -> None:
             warm.append(wall)
             if recompiled:
                 print(f"repeat {r}: the warm run compiled again: {sorted(recompiled)}", file=sys.stderr)
+            if numbers(caches / "warm") != numbers(caches / "cold"):
+                sys.exit(f"repeat {r}: the warm run's results.csv differs from the cold run's")
         print(f"repeat {r}: cold {cold[-1]:.1f} s, warm {warm[-1]:.1f} s", file=sys.stderr)
     figures = {
         "cold_s": cold, "warm_s": warm,

@@ -319,6 +319,13 @@ MUTANTS: tuple[Mutant, ...] = (
     Mutant("reference-stderr-halved", "quadrature references report half their standard error",
            "warpis/analysis/reference.py", "_run", "float(row.std(ddof=1) / math.sqrt(replicas))",
            "float(0.5 * row.std(ddof=1) / math.sqrt(replicas))", ("tests/test_reference_precision.py",)),
+    Mutant("memo-name-forgets-the-arguments", "a kept theory result is named without its arguments: another "
+           "receiver or N reads it back", "warpis/analysis/memo.py", "kept_path",
+           "(_FORMAT, quantity, digest, device, args, code_digest())", "(_FORMAT, quantity, digest, device, code_digest())",
+           ("tests/test_memo.py",)),
+    Mutant("memo-name-forgets-the-code", "a kept theory result outlives a change of warpis's code",
+           "warpis/analysis/memo.py", "code_digest", "h.update(hashlib.sha256(path.read_bytes()).digest())",
+           "h.update(b\"\")", ("tests/test_memo.py",)),
     # ------------------------------------------------------------------ runs
     Mutant("inside-band-widened", "verify's inside band 3 × 1.96", "warpis/runs/cell.py", "inside",
            "return bool(abs(z) <= Z95)", "return bool(abs(z) <= 3 * Z95)", ("tests/test_verify_verdicts.py",)),

@@ -61,6 +61,7 @@ from ..kernels.techniques import (TECHNIQUES, LightTable, check_lights, dispatch
 from ..scenes import Scene
 from ..vocabulary import Blocks, WeightContext
 from ..point_sets import MAX_POINTS_PER_CALL
+from . import memo
 
 REL_TOL = 0.01
 REPLICAS = 8
@@ -321,6 +322,15 @@ class Estimate:
         return abs(self.stderr / self.value)
 
 
+def _estimate_json(e: Estimate) -> list:
+    return [e.value, e.stderr, e.points]
+
+
+def _estimate_of(d: list) -> Estimate:
+    value, stderr, points = d
+    return Estimate(float(value), float(stderr), int(points))
+
+
 def _unbiased_block_variance(q: np.ndarray, p: np.ndarray) -> np.ndarray:
     """Σ over blocks of E[Q] − E[P]², from per-replica block means q, p of shape (..., B, r).
 
@@ -455,14 +465,22 @@ def exact_variance(scene: Scene, receiver: int, estimator: str | Estimator, n: i
     WarpisError where the estimator has no exact form (``exact_form_problem``).
     """
     est, m, blocks, scale = _exact_estimator(estimator, n)
-    cache = upload(scene).cached("block_variance", dict)  # kept per content and device
+    up = upload(scene)
+    cache = up.cached("block_variance", dict)  # kept per content and device, and on disk (memo)
     layout = (m,) if blocks is None else (blocks.count, blocks.cells)
-    key = (receiver, est.pattern, est.combiner, est.parameter_value, est.techniques, layout, rel_tol, seed, max_points)
+    key = (int(receiver), est.pattern, est.combiner, est.parameter_value, est.techniques, layout, rel_tol, seed,
+           max_points)
     if key not in cache:
-        if blocks is None:
-            cache[key] = pair_variance(scene, receiver, est, m, rel_tol, seed, max_points)
+        def compute() -> Estimate:
+            if blocks is None:
+                return pair_variance(scene, receiver, est, m, rel_tol, seed, max_points)
+            return block_variance(scene, receiver, est, blocks, rel_tol, seed, max_points)
+
+        if memo.keepable(est.techniques, est.pattern):
+            path = memo.kept_path("variance", scene.digest, up.device, key)
+            cache[key] = memo.kept(path, compute, _estimate_json, _estimate_of)
         else:
-            cache[key] = block_variance(scene, receiver, est, blocks, rel_tol, seed, max_points)
+            cache[key] = compute()
     v = cache[key]
     return Estimate(scale * v.value, scale * v.stderr, v.points)
 
@@ -695,8 +713,33 @@ def _mean_estimate(values: np.ndarray) -> Estimate:
     return Estimate(float(per.mean()), float(per.std(ddof=1) / math.sqrt(len(per))), values.size)
 
 
+def _moments_json(mom: Moments) -> dict:
+    return {"techniques": list(mom.techniques), "I": _estimate_json(mom.I), "E_hbar2": _estimate_json(mom.E_hbar2),
+            "int_f2": _estimate_json(mom.int_f2), "int_inv_g": list(mom.int_inv_g),
+            **{name: [_estimate_json(e) for e in getattr(mom, name)] for name in _MOMENT_LISTS}}
+
+
+def _moments_of(d: dict) -> Moments:
+    return Moments(tuple(str(t) for t in d["techniques"]), _estimate_of(d["I"]),
+                   [_estimate_of(e) for e in d["I_k"]], _estimate_of(d["E_hbar2"]),
+                   *([_estimate_of(e) for e in d[name]] for name in _MOMENT_LISTS[1:]),
+                   _estimate_of(d["int_f2"]), [None if g is None else float(g) for g in d["int_inv_g"]])
+
+
+_MOMENT_LISTS = ("I_k", "E_is2", "int_fg", "int_f2g")
+
+
 def moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int = 256, seed: int = SEED) -> Moments:
-    """Reference moments from ``REPLICAS`` × sub² jittered points per technique."""
+    """Reference moments from ``REPLICAS`` × sub² jittered points per technique (kept on
+    disk by content: :mod:`warpis.analysis.memo`)."""
+    techniques = tuple(techniques)
+    if not memo.keepable(techniques):
+        return _moments(scene, receiver, techniques, sub, seed)
+    path = memo.kept_path("moments", scene.digest, upload(scene).device, (int(receiver), techniques, sub, seed))
+    return memo.kept(path, lambda: _moments(scene, receiver, techniques, sub, seed), _moments_json, _moments_of)
+
+
+def _moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int, seed: int) -> Moments:
     rng = np.random.default_rng([seed, receiver, 1])
     blocks = Blocks(1, 1, (1, 1), False)
     u = jittered_points(blocks, sub, REPLICAS, rng).reshape(-1, 2)
@@ -717,10 +760,15 @@ def moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int =
     e_hbar2 = _mean_estimate(np.mean(e_h2, axis=0))
     if scene.environment is None and scene.light_count:
         # ∫ f² = E_light[f²/g]: light-area covers the support of f when all light comes
-        # from emitter triangles and spheres.
-        f, pdf = evaluate(scene, receiver, ("light-area",), 0, u)
-        w = weighted_values("single", 0, f, pdf)
-        int_f2 = _mean_estimate((w * f).reshape(shape))
+        # from emitter triangles and spheres.  The points depend on (seed, receiver, sub)
+        # alone, so every technique set of a receiver shares this one evaluation.
+        shared = upload(scene).cached("int_f2", dict)  # per content and device
+        key = (int(receiver), sub, seed)
+        if key not in shared:
+            f, pdf = evaluate(scene, receiver, ("light-area",), 0, u)
+            w = weighted_values("single", 0, f, pdf)
+            shared[key] = _mean_estimate((w * f).reshape(shape))
+        int_f2 = shared[key]
     else:
         # An environment: ∫ f² = Σ_k E_{g_k}[f² / Σ_j g_j] over the set itself, which covers
         # the support of f (every set that estimates F does: techniques.check_lights).

@@ -1,0 +1,125 @@
+"""Theory results kept on disk (``warpis.analysis.memo``): a kept result is the computed one
+bit for bit, and any input it depends on is part of its name, so none is ever stale."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+import warpis
+from warpis.analysis import memo, quadrature
+from warpis.vocabulary import UserEntry
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("WARPIS_CACHE_DIR", str(tmp_path))
+    return tmp_path / "theory"
+
+
+def no_computing(*args, **kwargs):
+    raise AssertionError("computed although the result was kept")
+
+
+def test_kept_moments_are_the_computed_ones_and_are_not_computed_again(cache, monkeypatch):
+    scene = warpis.load_scene("occluded-quad")
+    techniques = ("light-area", "cosine")
+    fresh = quadrature._moments(scene, 2, techniques, 64, quadrature.SEED)
+    first = quadrature.moments(scene, 2, techniques, sub=64)
+    assert first == fresh and len(list(cache.glob("moments-*.json"))) == 1
+    monkeypatch.setattr(quadrature, "_moments", no_computing)
+    assert quadrature.moments(scene, 2, techniques, sub=64) == fresh  # Estimate's == compares floats exactly
+    with pytest.raises(AssertionError, match="computed although"):
+        quadrature.moments(scene, 3, techniques, sub=64)  # another receiver is another result
+
+
+def test_a_kept_variance_survives_the_process_bit_for_bit(cache):
+    """A second process reads what the first computed: the same digits, without the quadrature."""
+    code = textwrap.dedent("""
+        import sys, warpis
+        from warpis.analysis import quadrature
+        if sys.argv[1] == "again":
+            def refuse(*args, **kwargs):
+                raise SystemExit("computed although the result was kept")
+            quadrature.block_variance = refuse
+        v = quadrature.exact_variance(warpis.load_scene("occluded-quad"), 1, "jittered:power:light-area+cosine", 8)
+        print(repr((v.value, v.stderr, v.points)))
+    """)
+    env = {**os.environ, "WARPIS_CACHE_DIR": str(cache.parent)}
+    runs = [subprocess.run([sys.executable, "-c", code, when], capture_output=True, text=True, env=env)
+            for when in ("first", "again")]
+    assert [r.returncode for r in runs] == [0, 0], runs[1].stderr[-2000:]
+    assert runs[0].stdout.splitlines()[-1] == runs[1].stdout.splitlines()[-1]
+    assert len(list(cache.glob("variance-*.json"))) == 1
+
+
+def test_every_input_is_part_of_the_name(cache, monkeypatch, tmp_path):
+    base = memo.kept_path("variance", "digest", "cpu", (1, "jittered", 0.1))
+    assert base.parent == cache
+    others = {memo.kept_path("moments", "digest", "cpu", (1, "jittered", 0.1)),
+              memo.kept_path("variance", "other", "cpu", (1, "jittered", 0.1)),
+              memo.kept_path("variance", "digest", "cuda:0", (1, "jittered", 0.1)),
+              memo.kept_path("variance", "digest", "cpu", (2, "jittered", 0.1)),
+              memo.kept_path("variance", "digest", "cpu", (1, "jittered", 0.1 + 1e-16))}
+    assert base not in others and len(others) == 5
+    # The code: any source file of the package changes the name of every result.
+    package = tmp_path / "package"
+    (package / "sub").mkdir(parents=True)
+    (package / "a.py").write_text("A = 1\n")
+    (package / "sub" / "b.py").write_text("B = 2\n")
+    monkeypatch.setattr(memo, "PACKAGE", package)
+    memo.code_digest.cache_clear()
+    try:
+        before = memo.kept_path("variance", "digest", "cpu", ())
+        (package / "sub" / "b.py").write_text("B = 3\n")
+        memo.code_digest.cache_clear()
+        assert memo.kept_path("variance", "digest", "cpu", ()) != before
+    finally:
+        memo.code_digest.cache_clear()
+
+
+def test_a_broken_or_foreign_file_is_computed_again_and_replaced(cache):
+    path = memo.kept_path("variance", "digest", "cpu", (7,))
+    path.parent.mkdir(parents=True)
+    calls = []
+
+    def compute() -> quadrature.Estimate:
+        calls.append(1)
+        return quadrature.Estimate(0.1, 1e-3, 64)
+
+    for content in ("{not json", "[1, 2]", '{"value": 1}', ""):
+        path.write_text(content)
+        got = memo.kept(path, compute, quadrature._estimate_json, quadrature._estimate_of)
+        assert got == quadrature.Estimate(0.1, 1e-3, 64)
+        assert json.loads(path.read_text()) == [0.1, 1e-3, 64]
+    assert len(calls) == 4
+
+
+def test_an_unwritable_cache_only_costs_the_next_computation(tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the cache folder would be")
+    monkeypatch.setenv("WARPIS_CACHE_DIR", str(blocker))
+    path = memo.kept_path("variance", "digest", "cpu", ())
+    assert memo.kept(path, lambda: quadrature.Estimate(1.0, 0.0), quadrature._estimate_json,
+                     quadrature._estimate_of) == quadrature.Estimate(1.0, 0.0)
+    assert blocker.read_text().startswith("a file")
+
+
+def test_what_registered_python_computes_is_never_kept(cache, monkeypatch):
+    """A user technique's or pattern's code is outside the package's digest: its results
+    are computed every time, never read back."""
+    assert memo.keepable(("light-area", "cosine"), "jittered")
+    monkeypatch.setattr(memo, "user_techniques", lambda: (UserEntry("mine", 99, ()),))
+    monkeypatch.setattr(memo, "user_patterns", lambda: (UserEntry("my-grid", 98, ()),))
+    assert not memo.keepable(("light-area", "mine"))
+    assert not memo.keepable(("light-area", "cosine"), "my-grid")
+    assert memo.keepable(("light-area", "cosine"), "jittered")
+    monkeypatch.setattr(quadrature.memo, "keepable", lambda *args: False)
+    scene = warpis.load_scene("occluded-quad")
+    quadrature.moments(scene, 2, ("light-area",), sub=32)
+    assert not cache.exists()

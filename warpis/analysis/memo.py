@@ -1,0 +1,91 @@
+"""Theory results kept on disk by content, so that the next process reuses them.
+
+An exact variance or a receiver's reference moments costs seconds of dense quadrature
+(most of a study's time beside its trials: ``warpis demo`` spends about 35 s on
+predictions and 16 s on moments), and depends on nothing but its inputs.  So each is
+kept in ``cache_dir()/theory/`` (``WARPIS_CACHE_DIR``, else ``~/.cache/warpis``), in a
+JSON file named by the SHA-256 of everything it depends on:
+
+* the scene's digest (equal digests mean equal results: :attr:`Scene.digest`) and the
+  Warp device it ran on (CPU and GPU round differently);
+* what was asked: the quantity and every argument, floats spelled exactly (``repr``);
+* the code that computes it: every source file of the warpis package, and the versions
+  of warp-lang and numpy (the kernels' compiler, the quadrature's random points).
+
+A changed scene, argument, warpis file, Warp or numpy is another name, never a stale
+answer.  Techniques and patterns registered from Python (whose code the package hash does
+not see) are never kept: :func:`keepable` says so.  Floats round-trip exactly through
+JSON, so a kept result is bit-identical to a computed one.  A file that cannot be read or
+does not decode is computed again and replaced; one that cannot be written only costs the
+next computation.  Clearing the folder is always safe.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+import warp as wp
+
+from ..kernels.bvh import cache_dir
+from ..kernels.patterns import user_patterns
+from ..kernels.techniques import user_techniques
+
+T = TypeVar("T")
+
+_FORMAT = "warpis theory 1"  # a new encoding gets a new number
+PACKAGE = Path(__file__).resolve().parents[1]
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """SHA-256 of every ``.py`` file of the warpis package (paths and contents) and of the
+    versions of warp-lang and numpy: what the kept results were computed by."""
+    h = hashlib.sha256(_FORMAT.encode())
+    for path in sorted(PACKAGE.rglob("*.py")):
+        h.update(path.relative_to(PACKAGE).as_posix().encode() + b"\0")
+        h.update(hashlib.sha256(path.read_bytes()).digest())
+    h.update(f"warp-lang {wp.config.version} numpy {np.__version__}".encode())
+    return h.hexdigest()
+
+
+def keepable(techniques: tuple[str, ...], pattern: str | None = None) -> bool:
+    """Whether results over these techniques (and pattern) may be kept: none of them was
+    registered from Python, whose code the package's digest does not cover."""
+    user = {u.name for u in user_techniques()} | {u.name for u in user_patterns()}
+    return not user.intersection(techniques) and pattern not in user
+
+
+def kept_path(quantity: str, digest: str, device: str, args: tuple) -> Path:
+    """The file of one result: ``theory/<quantity>-<SHA-256 of its inputs>.json``."""
+    key = repr((_FORMAT, quantity, digest, device, args, code_digest()))
+    return cache_dir() / "theory" / f"{quantity}-{hashlib.sha256(key.encode()).hexdigest()[:40]}.json"
+
+
+def kept(path: Path, compute: Callable[[], T], encode: Callable[[T], Any], decode: Callable[[Any], T]) -> T:
+    """The result stored at ``path`` (:func:`kept_path`), else ``compute()``, stored there."""
+    try:
+        return decode(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError, KeyError, IndexError):
+        pass  # absent, unreadable or another layout: compute it again
+    value = compute()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".json", delete=False) as fh:
+            try:
+                json.dump(encode(value), fh)
+            except BaseException:
+                fh.close()
+                os.unlink(fh.name)
+                raise
+        os.replace(fh.name, path)  # atomic: a reader sees no file or the whole file
+    except OSError:
+        pass
+    return value
