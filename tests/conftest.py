@@ -34,10 +34,15 @@ import trimesh
 
 import warpis
 
-# warpis keeps built BVHs on disk (warpis/kernels/bvh.py): this run, and the warpis
-# processes it starts, use a folder of their own, removed at exit.
-os.environ["WARPIS_CACHE_DIR"] = tempfile.mkdtemp(prefix="warpis-test-cache-")
-atexit.register(shutil.rmtree, os.environ["WARPIS_CACHE_DIR"], True)
+# warpis keeps built BVHs and theory results on disk (warpis/kernels/bvh.py,
+# warpis/analysis/memo.py).  A test run uses a folder of its own: the run's first process
+# (pytest-xdist's controller, or pytest without workers) makes it and removes it at exit;
+# the workers and every warpis process the tests start inherit it, so a BVH or an exact
+# variance is computed once per run, not once per worker.
+if "WARPIS_TEST_CACHE_DIR" not in os.environ:
+    os.environ["WARPIS_TEST_CACHE_DIR"] = tempfile.mkdtemp(prefix="warpis-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["WARPIS_TEST_CACHE_DIR"], True)
+os.environ["WARPIS_CACHE_DIR"] = os.environ["WARPIS_TEST_CACHE_DIR"]
 
 BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")  # TOML scenes
 # Mitsuba XML scenes (need the mitsuba extra; tests/test_mitsuba_scene.py and test_against_mitsuba.py)
