@@ -326,6 +326,9 @@ MUTANTS: tuple[Mutant, ...] = (
     Mutant("memo-name-forgets-the-code", "a kept theory result outlives a change of warpis's code",
            "warpis/analysis/memo.py", "code_digest", "h.update(hashlib.sha256(path.read_bytes()).digest())",
            "h.update(b\"\")", ("tests/test_memo.py",)),
+    Mutant("recent-values-forget-the-technique", "the quadrature's reused evaluations are keyed without the "
+           "technique: technique 1 reads technique 0's values", "warpis/analysis/quadrature.py", "_recent_values",
+           "int(rows[0]), k, every,", "int(rows[0]), every,", ("tests/test_memo.py",)),
     # ------------------------------------------------------------------ runs
     Mutant("inside-band-widened", "verify's inside band 3 × 1.96", "warpis/runs/cell.py", "inside",
            "return bool(abs(z) <= Z95)", "return bool(abs(z) <= 3 * Z95)", ("tests/test_verify_verdicts.py",)),

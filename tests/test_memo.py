@@ -123,3 +123,28 @@ def test_what_registered_python_computes_is_never_kept(cache, monkeypatch):
     scene = warpis.load_scene("occluded-quad")
     quadrature.moments(scene, 2, ("light-area",), sub=32)
     assert not cache.exists()
+
+
+def test_a_second_combiner_reads_the_first_ones_evaluations(monkeypatch):
+    """Balance and power over one set at one layout evaluate the same points: the second
+    reuses the first's values (quadrature._recent_values) and gets what it would compute."""
+    from warpis.kernels.estimators import parse_estimator
+    from warpis.kernels.patterns import PATTERNS
+
+    scene = warpis.load_scene("occluded-quad")
+    blocks = PATTERNS["jittered"].blocks(8)
+    balance, power = (parse_estimator(f"jittered:{c}:light-area+cosine") for c in ("balance", "power"))
+    calls = []
+    real = quadrature.Evaluator.__call__
+    monkeypatch.setattr(quadrature.Evaluator, "__call__", lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
+    quadrature._recent.clear()
+    quadrature.block_variance(scene, 2, balance, blocks)
+    before = len(calls)
+    shared = quadrature.block_variance(scene, 2, power, blocks)
+    reused = len(calls) - before
+    monkeypatch.setattr(quadrature, "RECENT_EVALUATIONS", 0)
+    quadrature._recent.clear()
+    before = len(calls)
+    fresh = quadrature.block_variance(scene, 2, power, blocks)
+    assert reused < len(calls) - before  # at least the first density came from the balance run
+    assert shared == fresh  # the same digits

@@ -39,7 +39,10 @@ says; for many (``exact_variances``) it is the caller's, and the stderr says wha
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
+import threading
+from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -134,6 +137,7 @@ class Evaluator:
     codes: Any  # wp.array of the techniques' codes
     kernel: Any
     techniques: int
+    names: tuple[str, ...]  # the technique set
 
     @classmethod
     def of(cls, scene: Scene, techniques: tuple[str, ...]) -> Evaluator:
@@ -141,7 +145,8 @@ class Evaluator:
         up = upload(scene)
         codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32,
                          device=up.device)
-        return cls(up, light_table(scene), codes, _evaluate_kernel_for(user_techniques()), len(techniques))
+        return cls(up, light_table(scene), codes, _evaluate_kernel_for(user_techniques()), len(techniques),
+                   tuple(techniques))
 
     @property
     def cpu(self) -> bool:
@@ -678,10 +683,40 @@ def _psi(ev: Evaluator, rows: np.ndarray, est: Estimator, k: int, at: np.ndarray
          alpha: np.ndarray | None) -> np.ndarray:
     """(R, P) weighted values ψ_k at T_k(at) seen from each receiver of ``rows`` (``alpha``:
     the optimal-oracle's (R, N_g) coefficients, or None)."""
-    f, pdf = ev(rows, k, at, pieces, every=est.combiner_entry.every_sample)
+    f, pdf = _recent_values(ev, rows, k, at, pieces, est.combiner_entry.every_sample)
     per_point = None if alpha is None else np.repeat(alpha, f.shape[1], axis=0)
     ctx = WeightContext(est.parameter_value, per_point)
     return weighted_values(est.combiner, k, f.reshape(-1), pdf.reshape(-1, ev.techniques), ctx).reshape(f.shape)
+
+
+# The dense values of the last few single-receiver evaluations.  Two combiners over one
+# technique set at one block layout evaluate the very same points at the same receiver
+# (a cell's balance heuristic and the power heuristic behind its Veach bound), so the
+# second reads them here: the same arrays (read-only), a few MB each.
+RECENT_EVALUATIONS = 4
+_recent: OrderedDict[tuple, tuple[DeviceScene, np.ndarray, np.ndarray]] = OrderedDict()
+_recent_lock = threading.Lock()
+
+
+def _recent_values(ev: Evaluator, rows: np.ndarray, k: int, at: np.ndarray, pieces: int, every: bool
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """``ev(rows, k, at, pieces, every=every)``, read from the last few evaluations of one receiver."""
+    if len(rows) != 1:
+        return ev(rows, k, at, pieces, every=every)
+    # The entry holds its upload, so no other upload can take its id while it is kept.
+    key = (id(ev.up), ev.kernel, ev.names, int(rows[0]), k, every, at.shape, at.dtype.str,
+           hashlib.sha256(np.ascontiguousarray(at).tobytes()).digest())
+    with _recent_lock:
+        if key in _recent:
+            _recent.move_to_end(key)
+            return _recent[key][1:]
+    f, pdf = ev(rows, k, at, pieces, every=every)
+    f.flags.writeable = pdf.flags.writeable = False
+    with _recent_lock:
+        _recent[key] = (ev.up, f, pdf)
+        while len(_recent) > RECENT_EVALUATIONS:
+            _recent.popitem(last=False)
+    return f, pdf
 
 
 def _per_block(x: np.ndarray) -> np.ndarray:
