@@ -33,6 +33,8 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
+from warpis.runs.study_file import TIMING_COLUMNS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # The child: warpis's CLI with Warp's module-load lines left on (warpis turns them off).
@@ -73,12 +75,8 @@ def run_demo(caches: Path, out: Path, threads: int | None) -> tuple[float, dict[
     return wall, dict(compiled), loads
 
 
-# Columns measured with a clock: the only ones a warm run may change.
-TIMING_COLUMNS = ("seconds", "seconds_per_estimate", "efficiency")
-
-
 def numbers(out: Path) -> list[list[str]]:
-    """The demo's results.csv without its timing columns."""
+    """The demo's results.csv without its timing columns (the only ones a warm run may change)."""
     rows = list(csv.reader((out / "results.csv").open()))
     keep = [k for k, name in enumerate(rows[0]) if name not in TIMING_COLUMNS]
     return [[row[k] for k in keep] for row in rows]

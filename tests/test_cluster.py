@@ -23,7 +23,7 @@ from warpis.kernels.engine import BLOCK  # noqa: E402
 from warpis.kernels.estimators import parse_estimator  # noqa: E402
 from warpis.runs import cluster  # noqa: E402
 from warpis.runs.cell import CellJob  # noqa: E402
-from warpis.runs.study_file import load_study  # noqa: E402
+from warpis.runs.study_file import TIMING_COLUMNS, load_study  # noqa: E402
 from warpis.runs.study import run_study  # noqa: E402
 from warpis.runs.verify import verify  # noqa: E402
 
@@ -39,10 +39,6 @@ estimators = ["independent:single:light-area", "jittered:balance:light-area+cosi
               "jittered:power:light-area+cosine", "independent:mixture:light-area+cosine"]
 outputs = []
 '''
-
-
-# Columns measured with a clock: they differ from run to run (and between machines).
-TIMING_COLUMNS = ("seconds", "seconds_per_estimate", "efficiency")
 
 
 def numbers(path: Path) -> list[list[str]]:

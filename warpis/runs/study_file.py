@@ -36,6 +36,8 @@ HEADER = (["scene", "receiver", "estimator", "n", "trials", "seed", "mean", "mea
            "reference_stderr", "variance", "variance_stderr", "variance_lo", "variance_hi"]
           + [f"pred_{f}" for f in FORMS] + [f"z_{f}" for f in Z_FORMS]
           + ["seconds_per_estimate", "efficiency", "seconds", "warpis_version", "cell"])
+# The columns of HEADER measured with a clock: the only ones a rerun of a cell may change.
+TIMING_COLUMNS = ("seconds", "seconds_per_estimate", "efficiency")
 # Bytes per trial estimate while a cell runs: the float64 result and about three
 # float64 temporaries of the same size in stats.variance_interval.
 TRIAL_BYTES = 32
