@@ -4,7 +4,10 @@ Each mutant names a function of warpis (or of its tests' subjects) and a unique 
 inside it — a stable anchor, not a line number — and what to put in its place.  The
 script copies the project into a temporary folder, plants one mutant there, runs only the
 test files that should catch it (``pytest -x``, so it stops at the first failure) with
-that copy first on ``PYTHONPATH``, restores the file, and goes on.
+that copy first on ``PYTHONPATH``, restores the file, and goes on.  ``--jobs J`` (default:
+one per core) keeps J copies and runs J mutants at once, one per copy: a mutant's run is
+mostly one thread (pytest, a kernel's compilation, numpy), so two at a time keep both
+cores of a two-core machine busy.
 
 A mutant is *killed* when a test fails; it *survives* when the tests pass.  The script
 exits 1 when any mutant survives, when an anchor is no longer found exactly once (a
@@ -13,7 +16,7 @@ selected tests (a kill would then prove nothing).  A mutant that breaks the buil
 collection error, a kernel that does not compile) is reported as *broken*, also exit 1:
 it proves nothing either.
 
-    python scripts/mutants.py                 # every mutant (about 15–25 minutes on 2 cores)
+    python scripts/mutants.py                 # every mutant, two at a time on 2 cores
     python scripts/mutants.py --list          # names and bugs
     python scripts/mutants.py balance-plus-one trials-share-a-stream
     python scripts/mutants.py --markdown      # the result table as Markdown (docs/development.md, notes)
@@ -31,7 +34,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -335,6 +340,13 @@ MUTANTS: tuple[Mutant, ...] = (
     Mutant("resume-drops-last-row", "resume drops the last finished row of each cell", "warpis/runs/study.py",
            "_resume", "done = {c.key: previous[c.key] for c in cells", "done = {c.key: previous[c.key][:-1] for c in cells",
            ("tests/test_study.py",)),
+    Mutant("side-by-side-receivers-out-of-order", "a cell's receivers, scored two at a time, get their "
+           "results in reverse order", "warpis/runs/cell.py", "each_receiver",
+           "[pool.submit(work, r) for r in receivers]", "[pool.submit(work, r) for r in receivers][::-1]",
+           ("tests/test_cell.py",)),
+    Mutant("side-by-side-receivers-share-moments", "every receiver of a cell is predicted from the first "
+           "receiver's moments", "warpis/runs/cell.py", "score_cell",
+           "moments[row.receiver]", "moments[rows[0].receiver]", ("tests/test_cell.py",)),
     # ------------------------------------------------------------------ warpis check
     Mutant("check-pdf-tolerance-ignored", "warpis check passes a reported pdf whatever it differs by",
            "warpis/check/checks.py", "pdf_at_sample", "passed = frac <= PDF_MISMATCH_FRACTION", "passed = True",
@@ -375,14 +387,30 @@ class Outcome:
     seconds: float
 
 
-def run_tests(copy: Path, tests: tuple[str, ...], timeout: float) -> tuple[int, str]:
+def run_tests(copy: Path, tests: tuple[str, ...], timeout: float, workers: int = 1) -> tuple[int, str]:
+    """pytest -x over ``tests`` in ``copy`` (on ``workers`` xdist workers when more than one)."""
     env = dict(os.environ, PYTHONPATH=str(copy), PYTHONDONTWRITEBYTECODE="1")
-    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-rfE", *tests]
+    env.pop("WARPIS_TEST_CACHE_DIR", None)  # each run its own theory cache: a mutant's results are its own
+    spread = ["-n", str(workers)] if workers > 1 else []
+    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-rfE", *spread, *tests]
     try:
         proc = subprocess.run(cmd, cwd=copy, env=env, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return -1, "timed out"
     return proc.returncode, proc.stdout + proc.stderr
+
+
+def run_mutant(copy: Path, mutant: Mutant, planted: str, timeout: float) -> Outcome:
+    """The mutant's file in ``copy`` replaced by ``planted``, its tests run, the file restored."""
+    path = copy / mutant.file
+    original = path.read_text()
+    path.write_text(planted)
+    t0 = time.perf_counter()
+    try:
+        status, output = run_tests(copy, mutant.tests, timeout)
+    finally:
+        path.write_text(original)
+    return judge(mutant, status, output, time.perf_counter() - t0)
 
 
 def judge(mutant: Mutant, status: int, output: str, seconds: float) -> Outcome:
@@ -432,7 +460,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=900, help="seconds per mutant's test run (default 900)")
     p.add_argument("--no-clean-check", action="store_true",
                    help="skip running the selected tests on the unmutated copy first")
+    p.add_argument("--jobs", type=int, default=len(os.sched_getaffinity(0)),
+                   help="mutants run at once, each in its own copy (default: one per core)")
     args = p.parse_args(argv)
+    if args.jobs < 1:
+        p.error(f"--jobs must be at least 1 (got {args.jobs})")
     if args.list:
         for m in MUTANTS:
             print(f"{m.name:<36} {m.bug}")
@@ -442,40 +474,46 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"unknown mutant(s): {', '.join(unknown)}")
     chosen = [m for m in MUTANTS if not args.names or m.name in args.names]
     start = time.perf_counter()
-    copy = make_copy()
+    copies = [make_copy() for _ in range(args.jobs)]
     try:
-        check_import(copy)
+        for copy in copies:
+            check_import(copy)
         outcomes: list[Outcome] = []
         planted = {}
         for m in chosen:  # every anchor first: a lost one fails fast, before minutes of tests
             try:
-                planted[m.name] = plant((copy / m.file).read_text(), m)
+                planted[m.name] = plant((copies[0] / m.file).read_text(), m)
             except AnchorError as exc:
                 outcomes.append(Outcome(m, "anchor-lost", str(exc), 0.0))
         if not args.no_clean_check and planted:
             tests = tuple(dict.fromkeys(t for m in chosen if m.name in planted for t in m.tests))
-            status, output = run_tests(copy, tests, args.timeout * 2)
+            status, output = run_tests(copies[0], tests, args.timeout * 2, args.jobs)
             if status != 0:
                 print(output[-3000:], file=sys.stderr)
                 print(f"mutants: the unmutated copy fails {' '.join(tests)}: fix that first", file=sys.stderr)
                 return 1
             print(f"clean copy passes the selected tests ({time.perf_counter() - start:.0f} s)", flush=True)
-        for m in chosen:
-            if m.name not in planted:
-                continue
-            path = copy / m.file
-            original = path.read_text()
-            path.write_text(planted[m.name])
-            t0 = time.perf_counter()
+        free = list(copies)  # a copy is taken by one mutant at a time
+        lock = threading.Lock()
+
+        def one(m: Mutant) -> Outcome:
+            with lock:
+                copy = free.pop()
             try:
-                status, output = run_tests(copy, m.tests, args.timeout)
+                return run_mutant(copy, m, planted[m.name], args.timeout)
             finally:
-                path.write_text(original)
-            outcome = judge(m, status, output, time.perf_counter() - t0)
-            outcomes.append(outcome)
-            print(f"{outcome.verdict:<9} {m.name:<36} {outcome.test} ({outcome.seconds:.0f} s)", flush=True)
+                with lock:
+                    free.append(copy)
+
+        with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+            for done in as_completed([pool.submit(one, m) for m in chosen if m.name in planted]):
+                outcome = done.result()
+                outcomes.append(outcome)
+                print(f"{outcome.verdict:<9} {outcome.mutant.name:<36} {outcome.test} ({outcome.seconds:.0f} s)",
+                      flush=True)
     finally:
-        shutil.rmtree(copy, ignore_errors=True)
+        for copy in copies:
+            shutil.rmtree(copy, ignore_errors=True)
     total = time.perf_counter() - start
     outcomes.sort(key=lambda o: [m.name for m in MUTANTS].index(o.mutant.name))
     if args.markdown:

@@ -159,6 +159,53 @@ def test_a_measured_row_reads_the_same_in_verify_json_and_results_csv(lamp):
     assert len(cache.references) == 1 and len(cache.moments) == 1
 
 
+def test_each_receiver_runs_side_by_side_and_keeps_the_order():
+    """Two receivers at once (each waits for the other at a barrier: one at a time would time
+    out), results in the receivers' order whatever order they finish in, an error raised in
+    the caller, and one thread means one receiver after another."""
+    import threading
+    import time
+
+    meet = threading.Barrier(2, timeout=30)
+
+    def work(r: int) -> int:
+        if r < 2:
+            meet.wait()
+        time.sleep(0.05 * (3 - r))  # later receivers finish first
+        return r * r
+
+    assert cell.each_receiver(work, [0, 1, 2, 3], threads=2) == [0, 1, 4, 9]
+    order = []
+    assert cell.each_receiver(lambda r: order.append(r) or -r, [3, 1, 2], threads=1) == [-3, -1, -2]
+    assert order == [3, 1, 2]
+
+    def fails(r: int) -> int:
+        raise WarpisError(f"receiver {r}: bad")
+
+    with pytest.raises(WarpisError, match="receiver 0: bad"):
+        cell.each_receiver(fails, [0, 1], threads=2)
+
+
+def test_receivers_scored_side_by_side_get_their_own_predictions():
+    """A cell's receivers, scored two at a time, each carry the predictions of their own
+    moments: as theory.predictions gives them one receiver at a time, and as a one-thread
+    run scores them."""
+    from warpis.analysis.quadrature import moments
+    from warpis.analysis.theory import predictions
+
+    scene = warpis.load_scene("occluded-quad")
+    est = parse_estimator("jittered:balance:light-area+cosine")
+    rx = [5, 0, 3, 1]  # penumbra, lit, umbra, brightest: four different predictions
+    both = measure_cell(scene, rx, est, 4, TRIALS, 7, RunCache(), threads=2).rows
+    one = measure_cell(scene, rx, est, 4, TRIALS, 7, RunCache(), threads=1).rows
+    assert [row.receiver for row in both] == rx
+    for a, b in zip(both, one):
+        assert dataclasses.replace(a, seconds_per_estimate=None) == dataclasses.replace(b, seconds_per_estimate=None)
+        alone = predictions(scene, a.receiver, est, 4, mom=moments(scene, a.receiver, est.techniques))
+        assert a.predictions == dict(alone) and a.reasons == dict(alone.reasons)
+    assert len({row.predictions["exact"].value for row in both}) == len(rx)
+
+
 def test_biased_rows_carry_eq18_and_the_bias(lamp):
     (row,) = measure_cell(lamp, [0], parse_estimator("independent:biased:cosine"), 4, TRIALS, 1, RunCache()).rows
     out = verify.json_row(row)

@@ -23,9 +23,10 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from scipy.special import ndtri
@@ -37,7 +38,11 @@ from ..analysis.theory import BOUNDS, predictions
 from ..errors import WarpisError
 from ..kernels.engine import run_moments, warm
 from ..kernels.estimators import Estimator
+from ..limits import default_threads
 from ..scenes import Scene
+
+A = TypeVar("A")
+T = TypeVar("T")
 
 LEVEL = 0.95  # two-sided level of every interval and every "inside"
 Z95 = float(ndtri(0.5 * (1.0 + LEVEL)))  # 1.959963984540054, the quantile stats.variance_interval uses
@@ -205,25 +210,49 @@ def measure_cell(scene: Scene, receivers: Sequence[int], estimator: Estimator, n
     stats = run_moments(scene, estimator, n, trials, seed=seed, receivers=rx, threads=threads).interval(LEVEL)
     cost = (time.process_time() - cpu) / (len(rx) * trials)
     refs = cache.reference(scene, rx)
-    mom = {r: cache.moments_of(scene, r, estimator.techniques) for r in rx} if predict else None
-    rows = score_cell(scene, rx, estimator, n, trials, seed, stats, refs, mom, cost)
+    mom = None
+    if predict:
+        mom = dict(zip(rx, each_receiver(lambda r: cache.moments_of(scene, r, estimator.techniques), rx, threads)))
+    rows = score_cell(scene, rx, estimator, n, trials, seed, stats, refs, mom, cost, threads)
     return MeasuredCell(rows, time.perf_counter() - start)
+
+
+def each_receiver(work: Callable[[A], T], receivers: Sequence[A], threads: int | None = None) -> list[T]:
+    """``[work(r) for r in receivers]`` (receivers, or their rows) on up to ``threads`` threads
+    (default: one per core).
+
+    A receiver's theory alternates Warp launches, which release the GIL, with numpy
+    reductions in one thread; one receiver at a time leaves a core idle through each
+    reduction, two at a time keep both busy.  Every theory result depends on its own
+    receiver's inputs only, so the values are the same in any order.  Ctrl-C in the
+    calling thread stops every receiver not yet started.
+    """
+    workers = min(len(receivers), default_threads() if threads is None else threads)
+    if workers <= 1:
+        return [work(r) for r in receivers]
+    pool = ThreadPoolExecutor(max_workers=workers)
+    try:
+        return [f.result() for f in [pool.submit(work, r) for r in receivers]]
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def score_cell(scene: Scene, receivers: Sequence[int], estimator: Estimator, n: int, trials: int, seed: int,
                stats: VarianceEstimate, refs: Mapping[int, Reference],
-               moments: Mapping[int, Moments] | None, seconds_per_estimate: float | None = None) -> list[Row]:
+               moments: Mapping[int, Moments] | None, seconds_per_estimate: float | None = None,
+               threads: int | None = None) -> list[Row]:
     """The rows of a measured cell: its trial statistics (row i for ``receivers[i]``), each
-    receiver's reference and, given its moments, every prediction with its z and verdict;
-    ``seconds_per_estimate`` is the cell's measured cost, the same for every row."""
+    receiver's reference and, given its moments, every prediction with its z and verdict
+    (receivers on up to ``threads`` threads: :func:`each_receiver`); ``seconds_per_estimate``
+    is the cell's measured cost, the same for every row."""
     rows = []
     for i, r in enumerate(int(r) for r in receivers):
-        row = Row(scene.name, r, estimator.spec, n, trials, seed, float(stats.mean[i]), float(stats.mean_stderr[i]),
-                  refs[r].value, refs[r].stderr, float(stats.variance[i]), float(stats.variance_stderr[i]),
-                  float(stats.lo[i]), float(stats.hi[i]), seconds_per_estimate=seconds_per_estimate)
-        if moments is not None:
-            _predict(row, scene, estimator, moments[r])
-        rows.append(row)
+        rows.append(Row(scene.name, r, estimator.spec, n, trials, seed, float(stats.mean[i]),
+                        float(stats.mean_stderr[i]), refs[r].value, refs[r].stderr, float(stats.variance[i]),
+                        float(stats.variance_stderr[i]), float(stats.lo[i]), float(stats.hi[i]),
+                        seconds_per_estimate=seconds_per_estimate))
+    if moments is not None:
+        each_receiver(lambda row: _predict(row, scene, estimator, moments[row.receiver]), rows, threads)
     return rows
 
 
