@@ -44,6 +44,21 @@ if "WARPIS_TEST_CACHE_DIR" not in os.environ:
     atexit.register(shutil.rmtree, os.environ["WARPIS_TEST_CACHE_DIR"], True)
 os.environ["WARPIS_CACHE_DIR"] = os.environ["WARPIS_TEST_CACHE_DIR"]
 
+# The files that hold the suite's longest tests (10–50 s each: unbiasedness per scene,
+# the verdict fixture, Mitsuba comparisons, kernels compiled from plugins), longest
+# first.  They run first, whole and in their own order: pytest-xdist hands out the first
+# quarter of the tests alternately, so the long ones overlap on the two workers and the
+# many short ones fill the end, where one worker would otherwise finish a 50 s test alone.
+RUN_FIRST = ("test_estimators.py", "test_verify_verdicts.py", "test_theory.py", "test_check.py",
+             "test_sphere_lights.py", "test_against_mitsuba.py", "test_user_pattern.py", "test_material_preview.py",
+             "test_image_against_mitsuba.py", "test_techniques.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    first = {name: rank for rank, name in enumerate(RUN_FIRST)}
+    items.sort(key=lambda item: first.get(item.path.name, len(RUN_FIRST)))  # stable: a file's order is kept
+
+
 BUNDLED = ("heavy-occluder", "occluded-quad", "two-lights", "veach-plates")  # TOML scenes
 # Mitsuba XML scenes (need the mitsuba extra; tests/test_mitsuba_scene.py and test_against_mitsuba.py)
 MITSUBA_BUNDLED = ("mitsuba-cornell-box", "mitsuba-material-preview", "mitsuba-veach-plates")

@@ -221,8 +221,11 @@ class ChiSquareTest:
         """Unit directions (k, 3) for (cos θ, φ) in this test's frame."""
         b1, b2, n = self.frame
         sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t * cos_t))
-        return ((sin_t * np.cos(phi))[:, None] * b1 + (sin_t * np.sin(phi))[:, None] * b2
-                + cos_t[:, None] * n)
+        x, y = sin_t * np.cos(phi), sin_t * np.sin(phi)
+        out = np.empty((len(cos_t), 3))
+        for j in range(3):  # a column at a time: no (k, 3) temporaries, the same sums in the same order
+            out[:, j] = x * b1[j] + y * b2[j] + cos_t * n[j]
+        return out
 
     def _cell_index(self, cos_t: NDArray, phi: NDArray) -> tuple[NDArray, NDArray]:
         nc, nphi = self.res
