@@ -326,11 +326,14 @@ MUTANTS: tuple[Mutant, ...] = (
            "float(0.5 * row.std(ddof=1) / math.sqrt(replicas))", ("tests/test_reference_precision.py",)),
     Mutant("memo-name-forgets-the-arguments", "a kept theory result is named without its arguments: another "
            "receiver or N reads it back", "warpis/analysis/memo.py", "kept_path",
-           "(_FORMAT, quantity, digest, device, args, code_digest())", "(_FORMAT, quantity, digest, device, code_digest())",
+           "(_FORMAT, quantity, digest, device, args, code)", "(_FORMAT, quantity, digest, device, code)",
            ("tests/test_memo.py",)),
     Mutant("memo-name-forgets-the-code", "a kept theory result outlives a change of warpis's code",
            "warpis/analysis/memo.py", "code_digest", "h.update(hashlib.sha256(path.read_bytes()).digest())",
            "h.update(b\"\")", ("tests/test_memo.py",)),
+    Mutant("memo-prunes-its-own-version", "pruning the theory cache counts the running code's own folder among "
+           "the old ones", "warpis/analysis/memo.py", "_prune", "(f for f in folders if f[1] != str(current))",
+           "(f for f in folders)", ("tests/test_memo.py",)),
     Mutant("recent-values-forget-the-technique", "the quadrature's reused evaluations are keyed without the "
            "technique: technique 1 reads technique 0's values", "warpis/analysis/quadrature.py", "_recent_values",
            "int(rows[0]), k, every,", "int(rows[0]), every,", ("tests/test_memo.py",)),

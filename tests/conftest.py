@@ -48,7 +48,9 @@ os.environ["WARPIS_CACHE_DIR"] = os.environ["WARPIS_TEST_CACHE_DIR"]
 # the verdict fixture, Mitsuba comparisons, kernels compiled from plugins), longest
 # first.  They run first, whole and in their own order: pytest-xdist hands out the first
 # quarter of the tests alternately, so the long ones overlap on the two workers and the
-# many short ones fill the end, where one worker would otherwise finish a 50 s test alone.
+# many short ones fill the end: none of the long ones is left for one worker to finish
+# while the other waits.  A new test of tens of seconds belongs in one of these files, or
+# its file in this list.
 RUN_FIRST = ("test_estimators.py", "test_verify_verdicts.py", "test_theory.py", "test_check.py",
              "test_sphere_lights.py", "test_against_mitsuba.py", "test_user_pattern.py", "test_material_preview.py",
              "test_image_against_mitsuba.py", "test_techniques.py")

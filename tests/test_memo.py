@@ -31,7 +31,7 @@ def test_kept_moments_are_the_computed_ones_and_are_not_computed_again(cache, mo
     techniques = ("light-area", "cosine")
     fresh = quadrature._moments(scene, 2, techniques, 64, quadrature.SEED)
     first = quadrature.moments(scene, 2, techniques, sub=64)
-    assert first == fresh and len(list(cache.glob("moments-*.json"))) == 1
+    assert first == fresh and len(list(cache.glob("*/moments-*.json"))) == 1
     monkeypatch.setattr(quadrature, "_moments", no_computing)
     assert quadrature.moments(scene, 2, techniques, sub=64) == fresh  # Estimate's == compares floats exactly
     with pytest.raises(AssertionError, match="computed although"):
@@ -55,12 +55,12 @@ def test_a_kept_variance_survives_the_process_bit_for_bit(cache):
             for when in ("first", "again")]
     assert [r.returncode for r in runs] == [0, 0], runs[1].stderr[-2000:]
     assert runs[0].stdout.splitlines()[-1] == runs[1].stdout.splitlines()[-1]
-    assert len(list(cache.glob("variance-*.json"))) == 1
+    assert len(list(cache.glob("*/variance-*.json"))) == 1
 
 
 def test_every_input_is_part_of_the_name(cache, monkeypatch, tmp_path):
     base = memo.kept_path("variance", "digest", "cpu", (1, "jittered", 0.1))
-    assert base.parent == cache
+    assert base.parent == cache / memo.code_digest()[:16]
     others = {memo.kept_path("moments", "digest", "cpu", (1, "jittered", 0.1)),
               memo.kept_path("variance", "other", "cpu", (1, "jittered", 0.1)),
               memo.kept_path("variance", "digest", "cuda:0", (1, "jittered", 0.1)),
@@ -78,14 +78,40 @@ def test_every_input_is_part_of_the_name(cache, monkeypatch, tmp_path):
         before = memo.kept_path("variance", "digest", "cpu", ())
         (package / "sub" / "b.py").write_text("B = 3\n")
         memo.code_digest.cache_clear()
-        assert memo.kept_path("variance", "digest", "cpu", ()) != before
+        after = memo.kept_path("variance", "digest", "cpu", ())
+        assert after != before and after.parent != before.parent  # another code version's folder
     finally:
         memo.code_digest.cache_clear()
 
 
+def test_only_the_last_few_code_versions_keep_their_results(cache, monkeypatch):
+    """Each code version keeps its results in its own folder; the first use of one by a
+    process removes all but the KEEP_CODES most recently used, never its own, and the
+    flat files of the earlier layout, and leaves what is not a result alone."""
+    cache.mkdir()
+    (cache / "variance-0123.json").write_text("[1.0, 0.0, 0]")  # the flat layout
+    (cache / "notes.txt").write_text("not warpis's")
+    for age, code in enumerate("abcdef"):  # six older versions, "a" the most recently used
+        folder = cache / (code * 16)
+        folder.mkdir()
+        (folder / "moments-1.json").write_text("{}")
+        os.utime(folder, (1e9 - age, 1e9 - age))
+    memo.code_folder.cache_clear()
+    path = memo.kept_path("variance", "digest", "cpu", ())
+    left = sorted(p.name for p in cache.iterdir())
+    assert left == sorted([path.parent.name, "a" * 16, "b" * 16, "c" * 16, "notes.txt"])
+    assert len(left) - 1 == memo.KEEP_CODES
+    # The first use marks the folder used: a newer version now keeps it among the last few.
+    monkeypatch.setattr(memo, "code_digest", lambda: "f" * 64)
+    memo.code_folder.cache_clear()
+    memo.kept_path("variance", "digest", "cpu", ())
+    assert path.parent.is_dir() and not (cache / ("c" * 16)).exists()
+    memo.code_folder.cache_clear()
+
+
 def test_a_broken_or_foreign_file_is_computed_again_and_replaced(cache):
     path = memo.kept_path("variance", "digest", "cpu", (7,))
-    path.parent.mkdir(parents=True)
+    assert path.parent.is_dir()  # the code version's folder, made when first named
     calls = []
 
     def compute() -> quadrature.Estimate:

@@ -669,7 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_study)
 
     c = sub.add_parser("demo", help="the main job: ten estimators on occluded-quad, variance against N, "
-                                    "slopes and predictions (1–1.5 minutes on two cores, half a minute again)",
+                                    "slopes and predictions (about a minute on two cores, half a minute again)",
                        description="run the built-in demo study (scripts/studies/demo.toml) on occluded-quad",
                        parents=[plugin])
     c.add_argument("--out", help="output directory (default ./warpis-out/demo/)")

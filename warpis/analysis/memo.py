@@ -18,6 +18,12 @@ not see) are never kept: :func:`keepable` says so.  Floats round-trip exactly th
 JSON, so a kept result is bit-identical to a computed one.  A file that cannot be read or
 does not decode is computed again and replaced; one that cannot be written only costs the
 next computation.  Clearing the folder is always safe.
+
+Each version of the code keeps its results in a folder of its own,
+``theory/<first 16 hex digits of code_digest()>/``.  The first process of a version to
+use the folder marks it used and removes all but the ``KEEP_CODES`` most recently used
+ones (and any file of the flat layout of earlier warpis versions), so editing warpis
+or moving between releases never grows the cache past a few versions' results.
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ import functools
 import hashlib
 import json
 import os
+import re
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -64,9 +72,49 @@ def keepable(techniques: tuple[str, ...], pattern: str | None = None) -> bool:
 
 
 def kept_path(quantity: str, digest: str, device: str, args: tuple) -> Path:
-    """The file of one result: ``theory/<quantity>-<SHA-256 of its inputs>.json``."""
-    key = repr((_FORMAT, quantity, digest, device, args, code_digest()))
-    return cache_dir() / "theory" / f"{quantity}-{hashlib.sha256(key.encode()).hexdigest()[:40]}.json"
+    """The file of one result: ``theory/<code>/<quantity>-<SHA-256 of its inputs>.json``."""
+    code = code_digest()
+    key = repr((_FORMAT, quantity, digest, device, args, code))
+    folder = code_folder(cache_dir() / "theory", code[:16])
+    return folder / f"{quantity}-{hashlib.sha256(key.encode()).hexdigest()[:40]}.json"
+
+
+KEEP_CODES = 4  # code versions whose results stay: a few branches or releases in turn
+_CODE_NAME = re.compile(r"[0-9a-f]{16}")
+
+
+@functools.lru_cache(maxsize=8)
+def code_folder(theory: Path, code: str) -> Path:
+    """``theory/<code>``, the folder of one code version's results, marked used; the first
+    call per process (per cache folder and code) also prunes the others (:data:`KEEP_CODES`)."""
+    folder = theory / code
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        os.utime(folder)  # used now, whether this process reads or writes
+        _prune(theory, folder)
+    except OSError:
+        pass  # a cache that cannot be written only costs computations (kept)
+    return folder
+
+
+def _prune(theory: Path, current: Path) -> None:
+    """Remove the code folders beyond the KEEP_CODES most recently used (never ``current``)
+    and the result files of the flat layout.  Another process may be using a folder this
+    one removes: it then finds no file, or cannot write one, and computes (kept)."""
+    folders, flat = [], []
+    for entry in os.scandir(theory):
+        if entry.is_dir(follow_symlinks=False) and _CODE_NAME.fullmatch(entry.name):
+            folders.append((entry.stat(follow_symlinks=False).st_mtime, entry.path))
+        elif entry.is_file(follow_symlinks=False) and entry.name.endswith(".json"):
+            flat.append(entry.path)
+    older = sorted((f for f in folders if f[1] != str(current)), reverse=True)[KEEP_CODES - 1:]
+    for _, path in older:
+        shutil.rmtree(path, ignore_errors=True)
+    for path in flat:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
 
 
 def kept(path: Path, compute: Callable[[], T], encode: Callable[[T], Any], decode: Callable[[Any], T]) -> T:
