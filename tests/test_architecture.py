@@ -18,7 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "warpis"
 
 # Bottom to top.  A module's floor is that of its longest matching prefix.
 FLOORS = {
-    "warpis.errors": 0, "warpis.vocabulary": 0, "warpis.limits": 0, "warpis.version": 0, "warpis.stats": 0,
+    "warpis.errors": 0, "warpis.files": 0, "warpis.vocabulary": 0, "warpis.limits": 0, "warpis.version": 0, "warpis.stats": 0,
     "warpis.scenes": 1, "warpis.point_sets": 1,
     "warpis.kernels": 2,
     "warpis.analysis": 3,

@@ -220,6 +220,30 @@ def test_full_disk_while_drawing_leaves_no_half_figure(tmp_path, cli, monkeypatc
     assert broken_links(out) == [] and len(list((out / "figures").iterdir())) == 4
 
 
+def test_a_file_is_replaced_whole_or_not_at_all(tmp_path):
+    """warpis.files.replacing, behind every output and cache file: a failure in the writer
+    or in the rename leaves the old file and no temporary one; success replaces it with an
+    ordinary shareable file."""
+    from warpis import files
+
+    target = tmp_path / "kept.json"
+    target.write_bytes(b"old")
+    with pytest.raises(RuntimeError, match="stop"):
+        with files.replacing(target, durable=False) as fh:
+            fh.write(b"half")
+            raise RuntimeError("stop")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    with pytest.raises(OSError):  # the rename fails: a folder stands where the file would go
+        with files.replacing(folder) as fh:
+            fh.write(b"x")
+    assert target.read_bytes() == b"old" and not any(folder.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "kept.json"]
+    with files.replacing(target) as fh:
+        fh.write(b"new")
+    assert target.read_bytes() == b"new" and target.stat().st_mode & 0o044 == 0o044 & ~files._UMASK
+
+
 def test_verify_out_full_disk(tmp_path, cli, monkeypatch):
     """verify --out on a full disk: one line, and a verify.json already there stays as it was."""
     out = tmp_path / "out"

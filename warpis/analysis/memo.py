@@ -34,7 +34,6 @@ import json
 import os
 import re
 import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
@@ -42,6 +41,7 @@ from typing import Any, TypeVar
 import numpy as np
 import warp as wp
 
+from .. import files
 from ..kernels.bvh import cache_dir
 from ..kernels.patterns import user_patterns
 from ..kernels.techniques import user_techniques
@@ -126,14 +126,8 @@ def kept(path: Path, compute: Callable[[], T], encode: Callable[[T], Any], decod
     value = compute()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".json", delete=False) as fh:
-            try:
-                json.dump(encode(value), fh)
-            except BaseException:
-                fh.close()
-                os.unlink(fh.name)
-                raise
-        os.replace(fh.name, path)  # atomic: a reader sees no file or the whole file
+        with files.replacing(path, durable=False) as fh:  # a reader sees no file or the whole file
+            fh.write(json.dumps(encode(value)).encode())
     except OSError:
         pass
     return value

@@ -37,12 +37,13 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import warp as wp
+
+from .. import files
 
 __all__ = ["LEAF_SIZE", "PLANE_TOL", "SELF_HIT", "RayHit", "WideBvh", "WideBvhArrays", "any_hit", "any_hit_between", "build_wide_bvh",
            "cache_dir", "cached_wide_bvh", "closest_hit", "closest_hit_from", "coplanar", "magnitude", "upload_wide_bvh", "vec64"]
@@ -810,9 +811,8 @@ def cached_wide_bvh(vertices: np.ndarray, triangles: np.ndarray, apart: np.ndarr
     built = build_wide_bvh(verts, tris, chosen)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as fh:
+        with files.replacing(path, durable=False) as fh:  # a reader sees the old file or the whole new one
             np.savez(fh, **{name: getattr(built, name) for name in _CACHE_FIELDS})
-        os.replace(fh.name, path)  # atomic: a reader sees the old file or the whole new one
     except OSError:
         pass
     return built

@@ -24,11 +24,12 @@ import json
 import os
 import shutil
 import sys
-import tempfile
 import threading
 from pathlib import Path
 
 import warp as wp
+
+from .. import files
 
 # The modules whose kernels warpis launches (user techniques and patterns build their own).
 MODULES = (
@@ -119,11 +120,5 @@ def _copy_missing(source: Path, target: Path) -> None:
     for name in sorted(os.listdir(source), key=lambda n: not n.endswith(".meta")):
         if (target / name).exists():
             continue
-        fd, tmp = tempfile.mkstemp(dir=target, prefix=f".{name}.")
-        os.close(fd)
-        try:
-            shutil.copyfile(source / name, tmp)
-            os.replace(tmp, target / name)
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+        with open(source / name, "rb") as src, files.replacing(target / name, durable=False) as fh:
+            shutil.copyfileobj(src, fh)

@@ -17,16 +17,16 @@ import contextlib
 import errno
 import fcntl
 import os
-import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
+from .. import files
 from ..errors import WarpisError
 
 LOCK_NAME = ".lock"
-TMP_SUFFIX = ".warpis-tmp"
+TMP_SUFFIX = files.TMP_SUFFIX
 # Temporary names of warpis versions before the lock; a run holding the lock removes them.
 LEGACY_TMP = ("results.csv.tmp", "summary.json.tmp", "report.md.tmp", "verify.json.tmp")
 
@@ -34,16 +34,6 @@ LEGACY_TMP = ("results.csv.tmp", "summary.json.tmp", "report.md.tmp", "verify.js
 # cmd_verify, both taking the lock, do not lock each other out: flock conflicts between
 # two open files of one process too.
 _held: dict[str, int] = {}
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-# Read once: os.umask can only be read by setting it, which is not thread-safe.
-_UMASK = _umask()
 
 
 def cannot_write(path: Path | str, exc: OSError) -> WarpisError:
@@ -158,30 +148,14 @@ def _sweep(out: Path) -> None:
 
 @contextlib.contextmanager
 def replacing(path: Path) -> Iterator[IO[bytes]]:
-    """A binary file to write ``path``'s new content into; on success it replaces ``path``.
-
-    The content goes to a unique temporary name in the same folder (``os.replace`` is
-    atomic only within a filesystem), is flushed to disk, then renamed over ``path``.
-    On any failure the temporary file is removed and ``path`` is left as it was.
-    """
-    path = Path(path)
+    """A binary file to write ``path``'s new content into; on success it replaces ``path``
+    (:func:`warpis.files.replacing`: atomic, flushed to disk, no temporary file left on a
+    failure, ``path`` as it was).  Any ``OSError`` is the one-line :func:`cannot_write`."""
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TMP_SUFFIX)
+        with files.replacing(path) as fh:
+            yield fh
     except OSError as exc:
         raise cannot_write(path, exc) from None
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; results are ordinary shareable files
-        os.replace(tmp, path)
-    except BaseException as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise cannot_write(path, exc) from None
-        raise
 
 
 def _write(fh: IO[bytes], data: bytes) -> None:
