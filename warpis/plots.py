@@ -39,8 +39,9 @@ def _tight_box(fig) -> matplotlib.transforms.Bbox:
     """The box ``bbox_inches="tight"`` gives the PNG, found once for every format.
 
     "tight" lays the whole figure out again in each ``savefig`` before drawing it: one
-    layout here instead of one per format saves a quarter of a figure's time, and the
-    PNG is byte for byte what "tight" writes (the same Agg renderer at the same dpi).
+    layout here serves both formats (the demo's figures: 20–22 s → 19.5–20 s on a loaded
+    two-core machine), and the PNG is byte for byte what "tight" writes (the same Agg
+    renderer at the same dpi).
     """
     fig.set_dpi(DPI)
     fig.draw_without_rendering()
