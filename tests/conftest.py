@@ -28,7 +28,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+# OpenBLAS's threads spin while they wait for work: beside pytest-xdist's two workers and
+# warpis's own threads they only take the cores from the kernels (the chi-square tests of
+# test_techniques.py: 112 s of CPU with a BLAS thread per core, 80 s with one).  One BLAS
+# thread per process, set before numpy loads; the processes the tests start inherit it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402  (after the BLAS setting)
 import pytest
 import trimesh
 
