@@ -34,7 +34,7 @@ from typing import Any
 # thread per process, set before numpy loads; the processes the tests start inherit it.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402  (after the BLAS setting)
+import numpy as np  # after the BLAS setting
 import pytest
 import trimesh
 
