@@ -454,13 +454,15 @@ def _window_mass(scene, r: int, technique: str, spec) -> float:
 # (scene, receivers, emitter meshes → windows).  Receivers: occluded-quad lit (0) and in
 # umbra (4); heavy-occluder lit (1) and shadowed (5); two-lights right under the
 # small light (1) and beside it (5); veach-plates plate-2 (5, e = 50), in a window on
-# each of the four sphere lights (320 triangles each, crossed twice), and plate-4 (14,
-# e = 2000) on the smallest one (each veach window costs seconds: the suite stays fast).
+# the sphere lights of radius 0.1 and 0.9 (320 triangles each, crossed twice), and
+# plate-4 (14, e = 2000) on the smallest one (0.03).  The fourth (0.3, between two that
+# are tested) and the smallest seen again from plate-2 were left out: each veach window
+# costs seconds, and they tested what these do.
 SCENE_CASES = [
     ("occluded-quad", (0, 4), [("light", 1, ())]),
     ("heavy-occluder", (1, 5), [("light", 1, ())]),
     ("two-lights", (1, 5), [("light", 1, ()), ("light", 2, (1,))]),
-    ("veach-plates", (5,), [("light", m, ()) for m in (4, 5, 6, 7)]),
+    ("veach-plates", (5,), [("light", m, ()) for m in (5, 7)]),
     ("veach-plates", (14,), [("light", 4, ())]),  # the smallest sphere from the glossiest plate
     ("horizon-quad", (0, 1), [("light", 0, ())]),
 ]
@@ -567,10 +569,10 @@ def _chi2(scene, r: int, technique: str, spec, seed: int) -> ChiSquareTest:
 # Tolerance of the harness's ∫ pdf (``ChiSquareTest.pdf_integral``: jittered quadrature of
 # the pdf over the grid's cells, ires² points per cell, noisy cells refined 4×) against
 # the window's exact mass (``_window_mass``), relative.  Measured over every case: at most
-# 1.2e-4 (veach-plates r5 light-power on the smallest sphere) on grids of 8 × 16 cells and
-# finer, 2.2e-3 and 2.3e-3 on the two 4 × 8 grids (light-area on the smallest sphere of
-# veach-plates, which gets ~1000 valid samples, so its grid is coarse: 18,000 quadrature
-# points over a 1/|cos| pdf).  Tolerances 5e-4 and 5e-3 keep a margin of ≥ 2× over those,
+# 1.4e-4 (veach-plates r14, bsdf on the sphere) on grids of 8 × 16 cells and finer, 2.3e-3
+# on the one 4 × 8 grid (light-area on the smallest sphere of veach-plates, which gets
+# ~1000 valid samples, so its grid is coarse: 18,000 quadrature points over a 1/|cos|
+# pdf).  Tolerances 5e-4 and 5e-3 keep a margin of ≥ 2× over those,
 # and a pdf scaled by 1.01 is off by 1e-2 − (the error) ≥ 7.7e-3 > 5e-3: it fails.
 PDF_INTEGRAL_RTOL = 5e-4
 PDF_INTEGRAL_RTOL_COARSE = 5e-3  # grids with fewer than 8 rows
