@@ -181,7 +181,8 @@ def test_every_estimator_is_unbiased(references, name):
     """
     scene, refs = references[name]
     cells = []
-    for est in estimators_for(scene):
+    estimators = estimators_for(scene)
+    for est in estimators:
         rx = receivers_for(name, est, len(scene.receivers))
         values = run_trials(scene, est, n_for(est), TRIALS, seed=11, receivers=rx)
         for r, row in zip(rx, values):
@@ -198,9 +199,9 @@ def test_every_estimator_is_unbiased(references, name):
         z = (mean - ref) / se_total
         if abs(z) > z_star:
             failures.append(f"{name} {spec} receiver {r}: mean {mean:.6g} reference {ref:.6g} z = {z:.2f}")
-    assert k >= 4 * len(estimators_for(scene))
+    assert k >= 4 * len(estimators)
     unbiased = {c.name for c in COMBINERS.values() if c.unbiased}
-    assert {(e.pattern, e.combiner) for e in estimators_for(scene)} == set(itertools.product(PATTERNS, unbiased))
+    assert {(e.pattern, e.combiner) for e in estimators} == set(itertools.product(PATTERNS, unbiased))
     assert not failures, f"{len(failures)} of {k} cells beyond z* = {z_star:.2f}:\n" + "\n".join(failures[:20])
 
 
