@@ -18,7 +18,8 @@ camera, is computed twice:
 * warpis: ``reference(scene, rel_error=5e-4)`` (single-technique jittered quadrature,
   32 replicas; the lit floor point by its closed form), on warpis's own reading of the
   XML (the sphere analytic, as Mitsuba's; everything exact);
-* Mitsuba (``scalar_rgb``): at the receivers file's points, seen from the XML's camera,
+* Mitsuba (``llvm_ad_rgb``, every sample of a receiver in one array; the other tests
+  here use ``scalar_rgb``): at the receivers file's points, seen from the XML's camera,
   the surface interaction of a short ray cast at the point along the view, then
   ``SAMPLES`` = 2^19 independent uniform samples (numpy, fixed seed) of Mitsuba's own
   emitter sampling (``scene.sample_emitter_direction``: it picks one of the two emitters,
@@ -71,7 +72,10 @@ Also at the same receivers (deterministic, each kept small):
 
 from __future__ import annotations
 
+import glob
 import math
+import os
+import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,6 +89,10 @@ import warpis  # noqa: E402
 from warpis.analysis.reference import reference  # noqa: E402
 from warpis.kernels.integrand import evaluate_integrand  # noqa: E402
 from warpis.kernels.techniques import direction_pdf  # noqa: E402
+
+# Mitsuba's LLVM variant runs the estimates (scripts/mitsuba_baseline.py holds its loader).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
+from mitsuba_baseline import LLVM_GLOB
 
 DATA = Path(__file__).parent / "data" / "against_mitsuba"
 SCENE = DATA / "scene.xml"
@@ -170,27 +178,49 @@ class Estimate:
     offset_se: float
 
 
-def mitsuba_estimate(ms, rx: Receiver, count: int, seed: int) -> Estimate:
-    """F (channel g) by Mitsuba's emitter sampling and BSDF, ``count`` samples."""
-    ctx = mi.BSDFContext()
-    sample, evaluate, to_local, point2 = ms.sample_emitter_direction, rx.bsdf.eval, rx.si.to_local, mi.Point2f
-    test, si = ms.ray_test, rx.si
-    segment = np.zeros(count)
-    own = np.zeros(count)
-    for j, (a, b) in enumerate(np.random.default_rng(seed).random((count, 2)).tolist()):
-        ds, spec = sample(si, point2(a, b), False)  # Le / pdf, unoccluded
-        weight = spec[CHANNEL]
-        if weight > 0.0:
-            value = weight * evaluate(ctx, si, to_local(ds.d))[CHANNEL]
-            if not test(segment_ray(rx, ds)):
-                segment[j] = value
-            if not test(si.spawn_ray_to(ds.p)):  # what test_visibility=True does
-                own[j] = value
+def mitsuba_estimates(receivers: list[Receiver], count: int) -> list[Estimate]:
+    """F (channel g) at each receiver by Mitsuba's emitter sampling and BSDF, ``count``
+    samples each (numpy seed SEED + the receiver's index), as whole arrays in Mitsuba's
+    ``llvm_ad_rgb`` variant: the receiver's surface interaction (the fixture's short ray
+    along the view, cast ``count`` times), ``sample_emitter_direction`` without its own
+    visibility test, ``bsdf.eval``, and both shadow rays (the segment and
+    ``spawn_ray_to``) for every sample at once; float32 throughout, as in ``scalar_rgb``."""
+    from mitsuba_baseline import llvm_variant, load_mitsuba
 
-    def mean_se(x: np.ndarray) -> tuple[float, float]:
-        return float(x.mean()), float(x.std(ddof=1) / math.sqrt(count))
+    load_mitsuba()
+    estimates = []
+    with llvm_variant(mi):
+        import drjit as dr
 
-    return Estimate(*mean_se(segment), *mean_se(own), *mean_se(own - segment))
+        ms = mi.load_file(str(SCENE), optimize=False)
+        bsdfs = {shape.id(): shape.bsdf() for shape in ms.shapes()}
+        ctx = mi.BSDFContext()
+
+        def spread(v: np.ndarray):
+            return [mi.Float(np.full(count, c, dtype=np.float32)) for c in v]
+
+        for i, rx in enumerate(receivers):
+            si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*spread(rx.point + 0.01 * rx.view)), mi.Vector3f(*spread(-rx.view))))
+            assert dr.all(si.is_valid()), rx.group
+            u = np.random.default_rng(SEED + i).random((count, 2)).astype(np.float32)
+            ds, spec = ms.sample_emitter_direction(si, mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1])), False)
+            weight = spec[CHANNEL]  # Le / pdf, unoccluded
+            lit = weight > 0.0
+            value = dr.select(lit, weight * bsdfs[rx.group].eval(ctx, si, si.to_local(ds.d))[CHANNEL], 0.0)
+            length = ds.dist * (1.0 - EPS) - EPS  # segment_ray's, for every sample
+            along = ms.ray_test(mi.Ray3f(si.p + EPS * ds.d, ds.d, length, 0.0, mi.Color0f()), lit)
+            spawned = ms.ray_test(si.spawn_ray_to(ds.p), lit)  # what test_visibility=True does
+            segment = np.array(dr.select(along, 0.0, value), dtype=np.float64)
+            own = np.array(dr.select(spawned, 0.0, value), dtype=np.float64)
+            # The receiver's point as the scalar variant finds it (the fixture's si), in every lane.
+            np.testing.assert_array_equal(np.array(si.p, dtype=np.float64),
+                                          np.array(rx.si.p, dtype=np.float64)[:, None] + np.zeros((1, count)))
+
+            def mean_se(x: np.ndarray) -> tuple[float, float]:
+                return float(x.mean()), float(x.std(ddof=1) / math.sqrt(count))
+
+            estimates.append(Estimate(*mean_se(segment), *mean_se(own), *mean_se(own - segment)))
+    return estimates
 
 
 def relative_error(mine: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -214,12 +244,15 @@ def test_receivers_are_mitsubas(pair):
     assert not any("tessellated" in n for n in pair.scene.notes), pair.scene.notes
 
 
+@pytest.mark.skipif(
+    not (os.environ.get("DRJIT_LIBLLVM_PATH") or glob.glob(LLVM_GLOB)),
+    reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "
+           f"{LLVM_GLOB}")
 def test_direct_radiance_matches_mitsuba(pair):
     """F per receiver within 4 combined standard errors (see the docstring)."""
     refs = reference(pair.scene, rel_error=REL_ERROR)
     rows, bad, zs = [], [], []
-    for i, (ref, r) in enumerate(zip(refs, pair.receivers)):
-        m = mitsuba_estimate(pair.ms, r, SAMPLES, SEED + i)
+    for i, (ref, r, m) in enumerate(zip(refs, pair.receivers, mitsuba_estimates(pair.receivers, SAMPLES))):
         sigma = math.hypot(ref.stderr, m.se)
         z = (ref.value - m.mean) / sigma
         zs.append(z)
