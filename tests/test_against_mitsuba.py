@@ -94,6 +94,12 @@ from warpis.kernels.techniques import direction_pdf  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 from mitsuba_baseline import LLVM_GLOB
 
+LLVM_PRESENT = bool(os.environ.get("DRJIT_LIBLLVM_PATH") or glob.glob(LLVM_GLOB))
+needs_llvm = pytest.mark.skipif(
+    not LLVM_PRESENT,
+    reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "
+           f"{LLVM_GLOB}")
+
 DATA = Path(__file__).parent / "data" / "against_mitsuba"
 SCENE = DATA / "scene.xml"
 RECEIVERS = DATA / "scene.receivers.toml"
@@ -121,11 +127,12 @@ EPS = 1e-3  # the segment to a light sample: this much off its start, this fract
 class Receiver:
     """One receiver as Mitsuba sees it."""
 
-    group: str
+    group: str  # the id of the shape it lies on
     point: np.ndarray
     view: np.ndarray  # towards the camera, world
-    si: object  # Mitsuba's SurfaceInteraction3f at the point, wi = the view
+    si: object  # Mitsuba's SurfaceInteraction3f at the point (scalar_rgb), wi = the view
     bsdf: object
+    ray: tuple[np.ndarray, np.ndarray]  # origin and direction of the short ray that found si
 
 
 @dataclass
@@ -149,9 +156,10 @@ def pair() -> Pair:
         for point in np.array(group["points"], dtype=np.float64):
             view = (camera - point) / np.linalg.norm(camera - point)
             # A short ray at the point along the view: it meets the point's surface only.
-            si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*(point + 0.01 * view)), mi.Vector3f(*(-view))))
+            ray = (point + 0.01 * view, -view)
+            si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*ray[0]), mi.Vector3f(*ray[1])))
             assert si.is_valid() and si.shape.id() == group["name"], (group["name"], point)
-            receivers.append(Receiver(group["name"], point, view, si, si.bsdf()))
+            receivers.append(Receiver(group["name"], point, view, si, si.bsdf(), ray))
     (sphere,) = [s for s in ms.shapes() if s.id() == "sphere-light"]
     box = sphere.bbox()
     return Pair(scene, ms, receivers, (np.array(box.center(), np.float64), float(box.extents()[0]) / 2.0))
@@ -178,11 +186,11 @@ class Estimate:
     offset_se: float
 
 
-def mitsuba_estimates(receivers: list[Receiver], count: int) -> list[Estimate]:
+def mitsuba_estimates(xml: Path, receivers: list[Receiver], count: int, seeds: list[int]) -> list[Estimate]:
     """F (channel g) at each receiver by Mitsuba's emitter sampling and BSDF, ``count``
-    samples each (numpy seed SEED + the receiver's index), as whole arrays in Mitsuba's
-    ``llvm_ad_rgb`` variant: the receiver's surface interaction (the fixture's short ray
-    along the view, cast ``count`` times), ``sample_emitter_direction`` without its own
+    samples each (numpy seed ``seeds[i]`` for receiver i), as whole arrays in Mitsuba's
+    ``llvm_ad_rgb`` variant: the receiver's surface interaction (its short ray cast
+    ``count`` times, wi = the view), ``sample_emitter_direction`` without its own
     visibility test, ``bsdf.eval``, and both shadow rays (the segment and
     ``spawn_ray_to``) for every sample at once; float32 throughout, as in ``scalar_rgb``."""
     from mitsuba_baseline import llvm_variant, load_mitsuba
@@ -192,17 +200,18 @@ def mitsuba_estimates(receivers: list[Receiver], count: int) -> list[Estimate]:
     with llvm_variant(mi):
         import drjit as dr
 
-        ms = mi.load_file(str(SCENE), optimize=False)
+        ms = mi.load_file(str(xml), optimize=False)
         bsdfs = {shape.id(): shape.bsdf() for shape in ms.shapes()}
         ctx = mi.BSDFContext()
 
         def spread(v: np.ndarray):
             return [mi.Float(np.full(count, c, dtype=np.float32)) for c in v]
 
-        for i, rx in enumerate(receivers):
-            si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*spread(rx.point + 0.01 * rx.view)), mi.Vector3f(*spread(-rx.view))))
+        for rx, seed in zip(receivers, seeds, strict=True):
+            si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*spread(rx.ray[0])), mi.Vector3f(*spread(rx.ray[1]))))
             assert dr.all(si.is_valid()), rx.group
-            u = np.random.default_rng(SEED + i).random((count, 2)).astype(np.float32)
+            si.wi = si.to_local(mi.Vector3f(*spread(rx.view)))
+            u = np.random.default_rng(seed).random((count, 2)).astype(np.float32)
             ds, spec = ms.sample_emitter_direction(si, mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1])), False)
             weight = spec[CHANNEL]  # Le / pdf, unoccluded
             lit = weight > 0.0
@@ -244,15 +253,13 @@ def test_receivers_are_mitsubas(pair):
     assert not any("tessellated" in n for n in pair.scene.notes), pair.scene.notes
 
 
-@pytest.mark.skipif(
-    not (os.environ.get("DRJIT_LIBLLVM_PATH") or glob.glob(LLVM_GLOB)),
-    reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "
-           f"{LLVM_GLOB}")
+@needs_llvm
 def test_direct_radiance_matches_mitsuba(pair):
     """F per receiver within 4 combined standard errors (see the docstring)."""
     refs = reference(pair.scene, rel_error=REL_ERROR)
     rows, bad, zs = [], [], []
-    for i, (ref, r, m) in enumerate(zip(refs, pair.receivers, mitsuba_estimates(pair.receivers, SAMPLES))):
+    estimates = mitsuba_estimates(SCENE, pair.receivers, SAMPLES, [SEED + i for i in range(len(pair.receivers))])
+    for i, (ref, r, m) in enumerate(zip(refs, pair.receivers, estimates)):
         sigma = math.hypot(ref.stderr, m.se)
         z = (ref.value - m.mean) / sigma
         zs.append(z)

@@ -36,10 +36,10 @@ point along −(warpis's geometric normal) gives the surface interaction; warpis
 to the viewer's side: a twosided BSDF flips both) within ``NORMAL_ATOL``.
 
 (b) F = ∫ Le ρ cos θ dω at each receiver: warpis's ``reference(scene,
-rel_error=REL_ERROR)`` against Mitsuba's estimate (``mitsuba_estimate`` of
+rel_error=REL_ERROR)`` against Mitsuba's estimate (``mitsuba_estimates`` of
 tests/test_against_mitsuba.py: ``SAMPLES`` = 2^16 independent uniform samples of
-``scene.sample_emitter_direction`` × ``bsdf.eval`` × visibility, in ``scalar_rgb``, with
-the Mitsuba interaction's wi set to the view).  Visibility is tested along the segment
+``scene.sample_emitter_direction`` × ``bsdf.eval`` × visibility, as whole arrays in
+``llvm_ad_rgb``, with the Mitsuba interaction's wi set to the view).  Visibility is tested along the segment
 from the receiver, as warpis's shadow ray runs; Mitsuba's own shadow rays
 (``spawn_ray_to``, offset along the geometric normal) give the same F within 0.02% at
 these receivers (printed), which lie off the triangles' edges: at a point on the quad's
@@ -84,7 +84,7 @@ mi = pytest.importorskip("mitsuba")
 
 import warpis  # noqa: E402
 from conftest import toml_value, write_mesh  # noqa: E402
-from test_against_mitsuba import SE_SHARE, Z, Receiver, mitsuba_estimate  # noqa: E402
+from test_against_mitsuba import LLVM_PRESENT, SE_SHARE, Z, Receiver, mitsuba_estimates, needs_llvm  # noqa: E402
 from warpis.analysis.reference import reference, unoccluded_lambert  # noqa: E402
 
 SAMPLES = 1 << 16  # Mitsuba's emitter samples per receiver
@@ -292,7 +292,8 @@ def case(request, tmp_path_factory) -> Case:
     receivers, shading, geometric = [], [], []
     for i in range(len(rx)):
         p, ng = rx.positions[i], rx.geometric_normals[i]
-        si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*(p + 0.01 * ng)), mi.Vector3f(*(-ng))))
+        ray = (p + 0.01 * ng, -ng)
+        si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*ray[0]), mi.Vector3f(*ray[1])))
         assert si.is_valid() and si.shape.id() == "mesh", (name, i)
         view = (viewer - p) / np.linalg.norm(viewer - p)
         si.wi = si.to_local(mi.Vector3f(*view))
@@ -300,7 +301,7 @@ def case(request, tmp_path_factory) -> Case:
         side = 1.0 if n @ view > 0 else -1.0  # a twosided BSDF flips the frame to the viewer's side
         shading.append(side * n)
         geometric.append(side * np.array(si.n, dtype=np.float64))
-        receivers.append(Receiver("mesh", p, view, si, si.bsdf()))
+        receivers.append(Receiver("mesh", p, view, si, si.bsdf(), ray))
     shading, geometric = np.array(shading), np.array(geometric)
     flat = warpis.load_scene(xml, receivers=write_receivers(xml.with_name("flat.receivers.toml"), spec, geometric))
     refs = reference(scene, rel_error=REL_ERROR)
@@ -308,7 +309,8 @@ def case(request, tmp_path_factory) -> Case:
     quadrature = reference(scene, rel_error=REL_ERROR, closed_form=False) if closed else refs
     flat_refs = reference(flat, rel_error=REL_ERROR)
     index = list(SPECS).index(name)
-    estimates = [mitsuba_estimate(ms, r, SAMPLES, SEED + 64 * index + i) for i, r in enumerate(receivers)]
+    seeds = [SEED + 64 * index + i for i in range(len(receivers))]
+    estimates = mitsuba_estimates(xml, receivers, SAMPLES, seeds) if LLVM_PRESENT else []
     return Case(name, scene, flat, receivers, shading, geometric, refs, quadrature, flat_refs, estimates)
 
 
@@ -342,6 +344,7 @@ def test_receivers_are_mitsubas(case):
     np.testing.assert_allclose(flat.positions, rx.positions, atol=0.0)
 
 
+@needs_llvm
 def test_direct_radiance_matches_mitsuba(case):
     """F per receiver within Z combined standard errors of Mitsuba's (see the docstring)."""
     rows, bad = [], []
@@ -362,6 +365,7 @@ def test_direct_radiance_matches_mitsuba(case):
                     f"{SE_SHARE} × Mitsuba's):\n{table}"
 
 
+@needs_llvm
 def test_face_normals_disagree_with_mitsuba(case):
     """With the triangles' own normals for shading, some receiver falls outside the band;
     so does F with the light behind a receiver's own surface let through."""
