@@ -207,6 +207,9 @@ def mitsuba_estimates(xml: Path, receivers: list[Receiver], count: int, seeds: l
         def spread(v: np.ndarray):
             return [mi.Float(np.full(count, c, dtype=np.float32)) for c in v]
 
+        def mean_se(x: np.ndarray) -> tuple[float, float]:
+            return float(x.mean()), float(x.std(ddof=1) / math.sqrt(count))
+
         for rx, seed in zip(receivers, seeds, strict=True):
             si = ms.ray_intersect(mi.Ray3f(mi.Point3f(*spread(rx.ray[0])), mi.Vector3f(*spread(rx.ray[1]))))
             assert dr.all(si.is_valid()), rx.group
@@ -222,11 +225,7 @@ def mitsuba_estimates(xml: Path, receivers: list[Receiver], count: int, seeds: l
             segment = np.array(dr.select(along, 0.0, value), dtype=np.float64)
             own = np.array(dr.select(spawned, 0.0, value), dtype=np.float64)
             # The receiver's point as the scalar variant finds it (the fixture's si), in every lane.
-            np.testing.assert_array_equal(np.array(si.p, dtype=np.float64),
-                                          np.array(rx.si.p, dtype=np.float64)[:, None] + np.zeros((1, count)))
-
-            def mean_se(x: np.ndarray) -> tuple[float, float]:
-                return float(x.mean()), float(x.std(ddof=1) / math.sqrt(count))
+            np.testing.assert_array_equal(np.array(si.p).T, np.broadcast_to(np.array(rx.si.p), (count, 3)))
 
             estimates.append(Estimate(*mean_se(segment), *mean_se(own), *mean_se(own - segment)))
     return estimates
