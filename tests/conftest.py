@@ -40,14 +40,17 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 def _keep_freed_memory() -> None:
     """Serve the tests' large numpy arrays from memory the process already holds.
 
-    glibc maps each allocation of ≥ 32 MiB afresh and unmaps it when freed, and numpy asks
-    for huge pages (madvise) on its large arrays: every chi-square case (a million
+    glibc maps each allocation above its mapping threshold (which grows to at most 32 MiB)
+    afresh and unmaps it when freed, and numpy asks for huge pages (madvise) on its large
+    arrays: every chi-square case (a million
     directions, grids of 1.8 million cells, float64 (k, 3) temporaries of 24–44 MiB) paid
     the kernel for zeroing — and compacting memory for — new pages at first touch.  With
     both off, the 12 chi-square cases of occluded-quad take 11 s of wall time and 0.45 s
-    of system time instead of 19 s and 10 s, at the same peak memory.  Set in the
-    environment for the processes the tests start (xdist's workers among them: glibc and
-    numpy read these when they load), and through mallopt for this one."""
+    of system time instead of 19 s and 10 s, at the same peak memory; a process that
+    allocates and frees a 40 MiB array again and again takes 10,241 page faults per array
+    with glibc's defaults, none with these.  Set in the environment for the processes the
+    tests start (xdist's workers among them: glibc and numpy read these when they load),
+    and through mallopt for this one."""
     os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     threshold = str(1 << 30)  # above any array of the suite: nothing large is mapped apart
     os.environ.setdefault("MALLOC_MMAP_THRESHOLD_", threshold)
@@ -67,6 +70,16 @@ import pytest
 import trimesh
 
 import warpis
+from warpis.check.mitsuba_bsdfs import LLVM_GLOB, llvm_library
+
+# Mitsuba's llvm_ad_rgb variant (Mitsuba's side of the array comparisons and of the
+# benchmark) needs libLLVM 19: the system's 14 and 15 abort it.  ``LLVM``: its path (also
+# exported as DRJIT_LIBLLVM_PATH), None without one; tests that need it skip, saying why.
+LLVM = llvm_library()
+needs_llvm = pytest.mark.skipif(
+    LLVM is None,
+    reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "
+           f"{LLVM_GLOB}")
 
 # warpis keeps built BVHs and theory results on disk (warpis/kernels/bvh.py,
 # warpis/analysis/memo.py).  A test run uses a folder of its own: the run's first process

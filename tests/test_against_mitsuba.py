@@ -72,9 +72,7 @@ Also at the same receivers (deterministic, each kept small):
 
 from __future__ import annotations
 
-import glob
 import math
-import os
 import sys
 import tomllib
 from dataclasses import dataclass
@@ -92,13 +90,7 @@ from warpis.kernels.techniques import direction_pdf  # noqa: E402
 
 # Mitsuba's LLVM variant runs the estimates (scripts/mitsuba_baseline.py holds its loader).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-from mitsuba_baseline import LLVM_GLOB
-
-LLVM_PRESENT = bool(os.environ.get("DRJIT_LIBLLVM_PATH") or glob.glob(LLVM_GLOB))
-needs_llvm = pytest.mark.skipif(
-    not LLVM_PRESENT,
-    reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "
-           f"{LLVM_GLOB}")
+from conftest import needs_llvm
 
 DATA = Path(__file__).parent / "data" / "against_mitsuba"
 SCENE = DATA / "scene.xml"

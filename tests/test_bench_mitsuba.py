@@ -16,14 +16,12 @@ docstring of scripts/mitsuba_baseline.py).
 
 from __future__ import annotations
 
-import glob
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import concat_meshes, quad
+from conftest import concat_meshes, needs_llvm, quad
 
 import warpis
 from warpis.errors import WarpisError
@@ -33,16 +31,11 @@ from warpis.kernels.engine import run_trials
 # repository's scripts/ folder, found from this file so that it works however warpis is
 # installed (editable or not).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-from mitsuba_baseline import LLVM_GLOB, MITSUBA_ESTIMATOR, MitsubaScene, mitsuba_trials  # noqa: E402
+from mitsuba_baseline import MITSUBA_ESTIMATOR, MitsubaScene, mitsuba_trials  # noqa: E402
 
 N = 16
 TRIALS = 4000
 Z = 4.0
-
-needs_llvm = pytest.mark.skipif(
-    not (os.environ.get("DRJIT_LIBLLVM_PATH") or glob.glob(LLVM_GLOB)),
-    reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "
-           f"{LLVM_GLOB}")
 
 
 @pytest.fixture(scope="module")

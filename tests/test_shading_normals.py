@@ -83,8 +83,8 @@ import trimesh
 mi = pytest.importorskip("mitsuba")
 
 import warpis  # noqa: E402
-from conftest import toml_value, write_mesh  # noqa: E402
-from test_against_mitsuba import LLVM_PRESENT, SE_SHARE, Z, Receiver, mitsuba_estimates, needs_llvm  # noqa: E402
+from conftest import LLVM, needs_llvm, toml_value, write_mesh  # noqa: E402
+from test_against_mitsuba import SE_SHARE, Z, Receiver, mitsuba_estimates  # noqa: E402
 from warpis.analysis.reference import reference, unoccluded_lambert  # noqa: E402
 
 SAMPLES = 1 << 16  # Mitsuba's emitter samples per receiver
@@ -310,7 +310,7 @@ def case(request, tmp_path_factory) -> Case:
     flat_refs = reference(flat, rel_error=REL_ERROR)
     index = list(SPECS).index(name)
     seeds = [SEED + 64 * index + i for i in range(len(receivers))]
-    estimates = mitsuba_estimates(xml, receivers, SAMPLES, seeds) if LLVM_PRESENT else []
+    estimates = mitsuba_estimates(xml, receivers, SAMPLES, seeds) if LLVM is not None else []
     return Case(name, scene, flat, receivers, shading, geometric, refs, quadrature, flat_refs, estimates)
 
 

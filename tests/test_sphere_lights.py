@@ -33,20 +33,17 @@ exactly, ``light-solid-angle`` samples the cone it subtends, ``light-area`` and
 
 from __future__ import annotations
 
-import glob
 import math
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import floor_entry, one_error_line, quad, write_scene
+from conftest import floor_entry, needs_llvm, one_error_line, quad, write_scene
 from test_techniques import Window
 
 import warpis
 from warpis.analysis.reference import reference
-from warpis.check.mitsuba_bsdfs import LLVM_GLOB
 from warpis.kernels.engine import run_trials
 from warpis.kernels.techniques import direction_pdf, sample_directions
 from warpis.scenes.lambert import sphere_irradiance
@@ -296,10 +293,6 @@ PENUMBRA_XML = """<scene version="3.0.0">
 PENUMBRA_X = np.concatenate([[-0.2955, -0.2747], np.linspace(-0.255, 0.255, 12)])
 MITSUBA_CHUNK = 1 << 20
 MITSUBA_CHUNKS = 2
-needs_llvm = pytest.mark.skipif(
-    not (os.environ.get("DRJIT_LIBLLVM_PATH") or glob.glob(LLVM_GLOB)),
-    reason=f"Mitsuba's llvm_ad_rgb variant needs libLLVM 19: DRJIT_LIBLLVM_PATH is unset and nothing matches "
-           f"{LLVM_GLOB}")
 
 
 def _penumbra_files(folder: Path, tessellate: bool) -> Path:
