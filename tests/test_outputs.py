@@ -10,6 +10,8 @@ finished row lost.  Studies are tiny: occluded-quad, trials 8, N = 4, two receiv
 from __future__ import annotations
 
 import errno
+import functools
+import os
 import re
 import shutil
 import subprocess
@@ -20,7 +22,7 @@ import pytest
 from conftest import write_scene
 from test_study import read_csv, without_seconds, write_study
 
-from warpis import plots
+from warpis import WarpisError, limits, plots
 from warpis.runs import outdir
 from warpis.runs.study_file import HEADER
 
@@ -347,6 +349,55 @@ def test_a_run_stopped_while_drawing_leaves_a_report_whose_links_resolve(tmp_pat
     assert broken_links(out) == [] and "-r5.png" in report and "-r1" not in report
     assert sorted(p.name for p in (out / "figures").iterdir()) == [
         f"convergence-occluded-quad-r{r}.{e}" for r in (2, 5) for e in ("pdf", "png")]
+
+
+def drawing_process() -> int:
+    """A stand-in figure job for draw_all: the process that ran it."""
+    return os.getpid()
+
+
+def crash_outside(parent: int) -> int:
+    """A stand-in figure job that kills any process but ``parent`` (as a crash of the helper would)."""
+    if os.getpid() != parent:
+        os._exit(3)
+    return parent
+
+
+def test_a_second_process_draws_from_the_front_while_this_one_draws_from_the_back():
+    """With two cores and HELPER_FROM figures a spawned helper takes the first job (this process
+    draws the rest while it starts); fewer figures, or one core, are drawn here in order."""
+    jobs = [functools.partial(drawing_process) for _ in range(plots.HELPER_FROM)]
+    here = os.getpid()
+    made = plots.draw_all(jobs, processes=2)
+    assert made[0] != here and made[1:] == [here] * (plots.HELPER_FROM - 1)
+    assert plots.draw_all(jobs, processes=1) == [here] * plots.HELPER_FROM
+    assert plots.draw_all(jobs[1:], processes=2) == [here] * (plots.HELPER_FROM - 1)
+
+
+def test_an_error_in_the_helper_is_raised_here_and_a_crash_costs_only_time():
+    """A WarpisError raised while the helper draws reaches this process whole; a helper that
+    dies leaves its job to this process, which draws every figure."""
+    bad = [functools.partial(limits.count_text, "many", "figure 0")]
+    rest = [functools.partial(drawing_process) for _ in range(plots.HELPER_FROM - 1)]
+    with pytest.raises(WarpisError, match=r"^figure 0: expected an integer, got 'many'$"):
+        plots.draw_all(bad + rest, processes=2)
+    here = os.getpid()
+    assert plots.draw_all([functools.partial(crash_outside, here)] * plots.HELPER_FROM, processes=2) == \
+        [here] * plots.HELPER_FROM
+
+
+def test_a_figure_the_helper_cannot_write_is_one_line_and_no_report(tmp_path, cli):
+    """HELPER_FROM convergence figures on two threads: the helper draws the first, whose path is
+    a folder; one line names it, no temporary file or report is left, and the rerun draws all."""
+    receivers = list(range(plots.HELPER_FROM))
+    study = write_study(tmp_path / "study.toml", **small(outputs=["convergence"], receivers=receivers))
+    out = tmp_path / "out"
+    (out / "figures" / "convergence-occluded-quad-r0.png").mkdir(parents=True)
+    one_error(cli("study", study, "--out", out, "--threads", "2"), "convergence-occluded-quad-r0.png: cannot write")
+    assert not leftovers(out) and not (out / "report.md").exists()
+    (out / "figures" / "convergence-occluded-quad-r0.png").rmdir()
+    assert cli("study", study, "--out", out, "--threads", "2").status == 0
+    assert broken_links(out) == [] and (out / "figures" / "convergence-occluded-quad-r0.png").is_file()
 
 
 @pytest.mark.parametrize("names", [("a/b", "a:b"), ("a b", "a?b")])

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+import multiprocessing
+from collections import deque
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import matplotlib
@@ -46,6 +50,61 @@ def _tight_box(fig) -> matplotlib.transforms.Bbox:
     fig.set_dpi(DPI)
     fig.draw_without_rendering()
     return fig.get_tightbbox(fig.canvas.get_renderer()).padded(matplotlib.rcParams["savefig.pad_inches"])
+
+
+# A second process pays from this many figures on: it takes about 3 s of a core to
+# start (Python, Warp, matplotlib), and a figure takes 1–2 s to lay out and write twice.
+HELPER_FROM = 5
+
+
+def draw_all(jobs: Sequence[Callable[[], list[Path]]], processes: int = 1) -> list[list[Path]]:
+    """The files of each job (a picklable call of a plot function of this module), in job order.
+
+    matplotlib holds the GIL while it lays out and draws, so a second thread would not
+    help: with ``processes`` ≥ 2 and at least HELPER_FROM jobs, a second process (spawned,
+    since this one may run Warp's threads) draws jobs from the front of the list while
+    this one draws from the back, and each takes the next as it finishes.  The files are
+    the same bytes either way (the same Agg renderer).  A helper that cannot start, or
+    dies, leaves its jobs to this process; an error a job raises (a file that cannot be
+    written) is raised here.
+    """
+    made: list[list[Path]] = [[] for _ in jobs]
+    todo = deque(range(len(jobs)))
+    pool = _helper() if processes >= 2 and len(jobs) >= HELPER_FROM else None
+    helper = pool
+    running: tuple[int, Future] | None = None
+    try:
+        while todo or running is not None:
+            if running is not None and (running[1].done() or not todo):
+                i, future = running
+                running = None
+                try:
+                    made[i] = future.result()
+                except BrokenProcessPool:
+                    helper = None
+                    todo.appendleft(i)
+            elif helper is not None and running is None:
+                i = todo.popleft()
+                try:
+                    running = (i, helper.submit(jobs[i]))
+                except (BrokenProcessPool, RuntimeError, OSError):  # it could not start
+                    helper = None
+                    todo.appendleft(i)
+            else:
+                i = todo.pop() if helper is not None else todo.popleft()
+                made[i] = jobs[i]()
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+    return made
+
+
+def _helper() -> ProcessPoolExecutor | None:
+    """One spawned process for :func:`draw_all`, or None where this system cannot start one."""
+    try:
+        return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+    except (OSError, ImportError, NotImplementedError):
+        return None
 
 
 def calibration_plot(rows: Sequence[dict], out: Path, stem: str = "calibration") -> list[Path]:

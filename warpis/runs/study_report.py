@@ -5,6 +5,7 @@ and writes nothing but through :mod:`warpis.runs.outdir`, atomically.
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -15,6 +16,7 @@ import numpy as np
 from ..analysis.theory import missing_forms
 from ..errors import WarpisError
 from ..kernels.estimators import Estimator
+from ..limits import default_threads
 from ..stats import fit_slope
 from ..version import __version__
 from ..vocabulary import MATERIALS
@@ -171,13 +173,37 @@ def _index(rows: list[dict]) -> dict[tuple, dict]:
 
 
 def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], list[str]]:
-    """Every figure the study's ``outputs`` ask for (PNG and PDF) → (paths, notes for the report)."""
+    """Every figure the study's ``outputs`` ask for (PNG and PDF) → (paths, notes for the report).
+
+    The figures are drawn together (:func:`warpis.plots.draw_all`), in two processes where
+    the study may use two cores."""
     from .. import plots
 
+    jobs, notes, if_none = figure_jobs(study, rows, fig_dir)
     paths: list[Path] = []
+    for made, note in zip(plots.draw_all(jobs, study.threads or default_threads()), if_none):
+        paths += made
+        if not made and note:
+            notes.append(note)
+    return paths, notes
+
+
+def figure_jobs(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[functools.partial], list[str],
+                                                                         list[str | None]]:
+    """The figures as calls of :mod:`warpis.plots` (plain data, picklable), the report's notes
+    on what they show, and for each call the note to add if it draws nothing."""
+    from .. import plots
+
+    jobs: list[functools.partial] = []
     notes: list[str] = []
+    if_none: list[str | None] = []
+
+    def job(plot: Callable[..., list[Path]], *args: Any, note: str | None = None) -> None:
+        jobs.append(functools.partial(plot, *args))
+        if_none.append(note)
+
     if not study.outputs:
-        return paths, notes
+        return jobs, notes, if_none
     at = _index(rows)
     fits = {(f["scene"], f["receiver"], f["estimator"]): f for f in slopes(rows, study)}
     for s in study.scenes:
@@ -211,13 +237,12 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
                         "slope": (fit["slope"], fit["slope_lo"], fit["slope_hi"])
                         if fit and fit["slope"] is not None else None,
                     })
-                made = plots.slope_convergence_plot(
-                    series, f"{s.name}, receiver {r}: variance against N, {study.trials} trials per point"
+                job(plots.slope_convergence_plot, series,
+                    f"{s.name}, receiver {r}: variance against N, {study.trials} trials per point"
                     + (" (dashed: exact prediction)" if study.predictions else ""),
-                    fig_dir, f"convergence-{slug}-r{r}")
-                if not made and series:
-                    notes.append(f"{s.name}, receiver {r}: zero variance under every estimator; no convergence figure")
-                paths += made
+                    fig_dir, f"convergence-{slug}-r{r}",
+                    note=f"{s.name}, receiver {r}: zero variance under every estimator; no convergence figure"
+                    if series else None)
         to_map = _mapper(s)
         if "maps" in study.outputs and to_map is not None:
             origin = "upper" if s.scene.receivers.image is not None else "lower"
@@ -226,8 +251,7 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
                                             if (s.name, r, est.spec, n) in at})
                      for est in study.estimators for n in study.n}
             for n in sorted(study.n):
-                paths += plots.variance_map_plot(
-                    [(study.label(est), grids[est.spec, n]) for est in study.estimators],
+                job(plots.variance_map_plot, [(study.label(est), grids[est.spec, n]) for est in study.estimators],
                     f"{s.name}: variance over {what}, N = {n} (shared log scale)",
                     fig_dir, f"variance-map-{slug}-n{n}", origin)
             if len(study.estimators) >= 2:
@@ -235,19 +259,19 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
                 a, b = ea.spec, eb.spec
                 with np.errstate(all="ignore"):
                     ratio = [(f"N = {n}", grids[a, n] / grids[b, n]) for n in sorted(study.n)]
-                paths += plots.ratio_map_plot(ratio, f"{s.name}: variance of {study.label(ea)} / variance of "
-                                                     f"{study.label(eb)}", fig_dir, f"variance-ratio-{slug}", origin)
+                job(plots.ratio_map_plot, ratio, f"{s.name}: variance of {study.label(ea)} / variance of "
+                                                 f"{study.label(eb)}", fig_dir, f"variance-ratio-{slug}", origin)
             if origin == "upper" and len(study.n) >= 2:
                 slope_maps = [(study.label(est), to_map({r: f["slope"] for r in s.receivers
                                                          if (f := fits.get((s.name, r, est.spec))) is not None
                                                          and f["slope"] is not None}))
                               for est in study.estimators]
-                paths += plots.slope_map_plot(slope_maps, f"{s.name}: convergence slope per pixel over N = "
-                                                          f"{', '.join(map(str, sorted(study.n)))}", fig_dir,
-                                              f"slope-map-{slug}")
+                job(plots.slope_map_plot, slope_maps, f"{s.name}: convergence slope per pixel over N = "
+                                                      f"{', '.join(map(str, sorted(study.n)))}", fig_dir,
+                    f"slope-map-{slug}")
     if "calibration" in study.outputs and study.predictions:
-        paths += plots.calibration_plot(rows, fig_dir, stem="calibration")
-    return paths, notes
+        job(plots.calibration_plot, rows, fig_dir, "calibration")
+    return jobs, notes, if_none
 
 
 def remove_stale_figures(fig_dir: Path, keep: list[Path]) -> None:
