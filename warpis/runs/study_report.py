@@ -8,6 +8,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -172,6 +173,15 @@ def _index(rows: list[dict]) -> dict[tuple, dict]:
     return {(r["scene"], r["receiver"], r["estimator"], r["n"]): r for r in rows}
 
 
+@dataclass(frozen=True)
+class Figure:
+    """One figure to draw: a call of a :mod:`warpis.plots` function on plain data (picklable),
+    and the report's note if it draws nothing."""
+
+    draw: functools.partial
+    if_none: str | None = None
+
+
 def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], list[str]]:
     """Every figure the study's ``outputs`` ask for (PNG and PDF) → (paths, notes for the report).
 
@@ -179,31 +189,33 @@ def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], 
     the study may use two cores."""
     from .. import plots
 
-    jobs, notes, if_none = figure_jobs(study, rows, fig_dir)
+    plan = figure_plan(study, rows, fig_dir)
+    jobs = [f for f in plan if isinstance(f, Figure)]
+    drawn = iter(plots.draw_all([f.draw for f in jobs], study.threads or default_threads()))
     paths: list[Path] = []
-    for made, note in zip(plots.draw_all(jobs, study.threads or default_threads()), if_none):
+    notes: list[str] = []
+    for entry in plan:
+        if isinstance(entry, str):
+            notes.append(entry)
+            continue
+        made = next(drawn)
         paths += made
-        if not made and note:
-            notes.append(note)
+        if not made and entry.if_none:
+            notes.append(entry.if_none)
     return paths, notes
 
 
-def figure_jobs(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[functools.partial], list[str],
-                                                                         list[str | None]]:
-    """The figures as calls of :mod:`warpis.plots` (plain data, picklable), the report's notes
-    on what they show, and for each call the note to add if it draws nothing."""
+def figure_plan(study: Study, rows: list[dict], fig_dir: Path) -> list[Figure | str]:
+    """The figures and the report's notes on them, in the report's order."""
     from .. import plots
 
-    jobs: list[functools.partial] = []
-    notes: list[str] = []
-    if_none: list[str | None] = []
+    plan: list[Figure | str] = []
 
     def job(plot: Callable[..., list[Path]], *args: Any, note: str | None = None) -> None:
-        jobs.append(functools.partial(plot, *args))
-        if_none.append(note)
+        plan.append(Figure(functools.partial(plot, *args), note))
 
     if not study.outputs:
-        return jobs, notes, if_none
+        return plan
     at = _index(rows)
     fits = {(f["scene"], f["receiver"], f["estimator"]): f for f in slopes(rows, study)}
     for s in study.scenes:
@@ -212,16 +224,16 @@ def figure_jobs(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[fun
             if s.scene.receivers.image is not None:
                 picked = representative_pixels(s, rows)
                 shown = [r for _, r in picked]
-                notes.append(f"{s.name}: convergence figures for representative pixels: "
-                             + "; ".join(f"{what}: receiver {r} (pixel row {p // w}, column {p % w})"
-                                         for what, r in picked
-                                         for p, w in [(int(s.scene.receivers.image.pixel[r]),
-                                                       s.scene.receivers.image.camera.width)]))
+                plan.append(f"{s.name}: convergence figures for representative pixels: "
+                            + "; ".join(f"{what}: receiver {r} (pixel row {p // w}, column {p % w})"
+                                        for what, r in picked
+                                        for p, w in [(int(s.scene.receivers.image.pixel[r]),
+                                                      s.scene.receivers.image.camera.width)]))
             else:
                 shown = s.receivers[:MAX_CONVERGENCE_RECEIVERS]
                 if len(s.receivers) > len(shown):
-                    notes.append(f"{s.name}: convergence figures for the first {len(shown)} of its "
-                                 f"{len(s.receivers)} receivers")
+                    plan.append(f"{s.name}: convergence figures for the first {len(shown)} of its "
+                                f"{len(s.receivers)} receivers")
             for r in shown:
                 series = []
                 for est in study.estimators:
@@ -271,7 +283,7 @@ def figure_jobs(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[fun
                     f"slope-map-{slug}")
     if "calibration" in study.outputs and study.predictions:
         job(plots.calibration_plot, rows, fig_dir, "calibration")
-    return jobs, notes, if_none
+    return plan
 
 
 def remove_stale_figures(fig_dir: Path, keep: list[Path]) -> None:
