@@ -432,7 +432,9 @@ def _run_study(study, out, args: argparse.Namespace) -> int:
                 bar.write(line, sys.stdout)
                 sys.stdout.flush()
 
-            run = run_study(study, out, progress=bar, log=log, runner=runner)
+            # Figures on as many processes as the study has threads: this __main__ is warpis's own.
+            run = run_study(study, out, progress=bar, log=log, runner=runner,
+                            figure_processes=study.threads or limits.default_threads())
     print(f"computed {run.computed} cell(s), skipped {run.skipped} already finished; "
           f"{len(run.rows)} rows in {out / 'results.csv'}")
     print(f"wrote {out / 'report.md'}, {out / 'summary.json'} and {len(run.figures)} figure file(s) in "

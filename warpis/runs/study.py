@@ -211,7 +211,8 @@ def write_results(out: Path, study: Study, cells: list[Cell], done: dict[str, li
 
 
 def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | None = None,
-              log: Callable[[str], None] | None = None, runner: Runner | None = None) -> StudyRun:
+              log: Callable[[str], None] | None = None, runner: Runner | None = None,
+              figure_processes: int = 1) -> StudyRun:
     """Run every unfinished cell of ``study`` into ``out``; then figures and report.md.
 
     ``progress(done, total)`` counts the cells this run computes; ``log`` receives one-line
@@ -221,13 +222,17 @@ def run_study(study: Study, out: Path, progress: Callable[[int, int], None] | No
     cannot be written is a one-line WarpisError; the files already there stay intact.
     ``runner`` measures the cells (default: :class:`~warpis.runs.cell.LocalRunner`; a
     Dask cluster: :func:`warpis.runs.cluster.connect`); the files do not depend on it.
+    ``figure_processes`` ≥ 2 lets a second process draw figures beside this one
+    (:func:`warpis.plots.draw_all`; the command line passes the study's threads).  It is
+    spawned, so it imports the caller's ``__main__`` again: a script that passes it
+    needs the ``if __name__ == "__main__":`` guard, as any use of multiprocessing does.
     """
     with outdir.locked(Path(out)) as out:
-        return _run_locked(study, out, progress, log or (lambda line: None), runner)
+        return _run_locked(study, out, progress, log or (lambda line: None), runner, figure_processes)
 
 
 def _run_locked(study: Study, out: Path, progress: Callable[[int, int], None] | None,
-                log: Callable[[str], None], runner: Runner | None) -> StudyRun:
+                log: Callable[[str], None], runner: Runner | None, figure_processes: int) -> StudyRun:
     cells = study.cells()
     done, dropped = _resume(study, cells, out / "results.csv", log)
     todo = [c for c in cells if c.key not in done]
@@ -245,7 +250,7 @@ def _run_locked(study: Study, out: Path, progress: Callable[[int, int], None] | 
     run = StudyRun(out, len(cells), len(cells) - len(todo), len(todo), dropped, rows)
     # Figures first, then the report that links them, then stale figures: a kill at any
     # point leaves a report whose every link resolves.
-    run.figures, run.notes = figures(study, rows, out / "figures")
+    run.figures, run.notes = figures(study, rows, out / "figures", figure_processes)
     outdir.write_text(out / "report.md", report(study, rows, run))
     remove_stale_figures(out / "figures", run.figures)
     return run

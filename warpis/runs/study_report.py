@@ -17,7 +17,6 @@ import numpy as np
 from ..analysis.theory import missing_forms
 from ..errors import WarpisError
 from ..kernels.estimators import Estimator
-from ..limits import default_threads
 from ..stats import fit_slope
 from ..version import __version__
 from ..vocabulary import MATERIALS
@@ -182,16 +181,14 @@ class Figure:
     if_none: str | None = None
 
 
-def figures(study: Study, rows: list[dict], fig_dir: Path) -> tuple[list[Path], list[str]]:
-    """Every figure the study's ``outputs`` ask for (PNG and PDF) → (paths, notes for the report).
-
-    The figures are drawn together (:func:`warpis.plots.draw_all`), in two processes where
-    the study may use two cores."""
+def figures(study: Study, rows: list[dict], fig_dir: Path, processes: int = 1) -> tuple[list[Path], list[str]]:
+    """Every figure the study's ``outputs`` ask for (PNG and PDF) → (paths, notes for the report),
+    drawn by :func:`warpis.plots.draw_all` on up to ``processes`` processes."""
     from .. import plots
 
     plan = figure_plan(study, rows, fig_dir)
     jobs = [f for f in plan if isinstance(f, Figure)]
-    drawn = iter(plots.draw_all([f.draw for f in jobs], study.threads or default_threads()))
+    drawn = iter(plots.draw_all([f.draw for f in jobs], processes))
     paths: list[Path] = []
     notes: list[str] = []
     for entry in plan:
