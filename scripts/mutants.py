@@ -340,6 +340,9 @@ MUTANTS: tuple[Mutant, ...] = (
     # ------------------------------------------------------------------ runs
     Mutant("inside-band-widened", "verify's inside band 3 × 1.96", "warpis/runs/cell.py", "inside",
            "return bool(abs(z) <= Z95)", "return bool(abs(z) <= 3 * Z95)", ("tests/test_verify_verdicts.py",)),
+    Mutant("helper-figures-dropped", "the figures a second process draws are left out of the study's list "
+           "(its report links fewer)", "warpis/plots.py", "draw_all", "made[i] = future.result()", "future.result()",
+           ("tests/test_outputs.py",)),
     Mutant("resume-drops-last-row", "resume drops the last finished row of each cell", "warpis/runs/study.py",
            "_resume", "done = {c.key: previous[c.key] for c in cells", "done = {c.key: previous[c.key][:-1] for c in cells",
            ("tests/test_study.py",)),
