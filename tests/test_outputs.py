@@ -14,6 +14,7 @@ import functools
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -351,9 +352,9 @@ def test_a_run_stopped_while_drawing_leaves_a_report_whose_links_resolve(tmp_pat
         f"convergence-occluded-quad-r{r}.{e}" for r in (2, 5) for e in ("pdf", "png")]
 
 
-def drawing_process() -> int:
-    """A stand-in figure job for draw_all: the process that ran it."""
-    return os.getpid()
+def drawing_process() -> tuple[int, bool]:
+    """A stand-in figure job for draw_all: the process that ran it, and whether it ignores Ctrl-C."""
+    return os.getpid(), signal.getsignal(signal.SIGINT) == signal.SIG_IGN
 
 
 def crash_outside(parent: int) -> int:
@@ -365,11 +366,14 @@ def crash_outside(parent: int) -> int:
 
 def test_a_second_process_draws_from_the_front_while_this_one_draws_from_the_back():
     """With two cores and HELPER_FROM figures a spawned helper takes the first job (this process
-    draws the rest while it starts); fewer figures, or one core, are drawn here in order."""
+    draws the rest while it starts); fewer figures, or one core, are drawn here in order.  The
+    helper ignores Ctrl-C (this process alone answers it, in one line); this one keeps its handler."""
     jobs = [functools.partial(drawing_process) for _ in range(plots.HELPER_FROM)]
-    here = os.getpid()
+    handler = signal.getsignal(signal.SIGINT)
+    here = (os.getpid(), handler == signal.SIG_IGN)
     made = plots.draw_all(jobs, processes=2)
-    assert isinstance(made[0], int) and made[0] != here and made[1:] == [here] * (plots.HELPER_FROM - 1)
+    assert isinstance(made[0], tuple) and made[0][0] != here[0] and made[0][1]
+    assert made[1:] == [here] * (plots.HELPER_FROM - 1) and signal.getsignal(signal.SIGINT) is handler
     assert plots.draw_all(jobs, processes=1) == [here] * plots.HELPER_FROM
     assert plots.draw_all(jobs[1:], processes=2) == [here] * (plots.HELPER_FROM - 1)
 

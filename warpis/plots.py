@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import multiprocessing
+import signal
+import threading
 from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -100,11 +102,25 @@ def draw_all(jobs: Sequence[Callable[[], list[Path]]], processes: int = 1) -> li
 
 
 def _helper() -> ProcessPoolExecutor | None:
-    """One spawned process for :func:`draw_all`, or None where this system cannot start one."""
-    try:
-        return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-    except (OSError, ImportError, NotImplementedError):
+    """One spawned process for :func:`draw_all`, started now, or None where it cannot start.
+
+    It starts with Ctrl-C ignored (a disposition a new Python keeps), so that an interrupt
+    reaches only this process, which stops the helper after its current figure and says so
+    in one line, instead of each process printing its own traceback.  Only the main
+    thread may change signal handlers: elsewhere there is no helper.
+    """
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous is None:  # None: set outside Python
         return None
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        pool.submit(int)  # spawns the process now, while interrupts are ignored
+        return pool
+    except (OSError, ImportError, NotImplementedError, RuntimeError):
+        return None
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def calibration_plot(rows: Sequence[dict], out: Path, stem: str = "calibration") -> list[Path]:
