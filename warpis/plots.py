@@ -89,7 +89,7 @@ def draw_all(jobs: Sequence[Callable[[], list[Path]]], processes: int = 1) -> li
                 i = todo.popleft()
                 try:
                     running = (i, helper.submit(jobs[i]))
-                except (BrokenProcessPool, RuntimeError, OSError):  # it could not start
+                except (BrokenProcessPool, RuntimeError, OSError):  # it has died
                     helper = None
                     todo.appendleft(i)
             else:
@@ -113,11 +113,14 @@ def _helper() -> ProcessPoolExecutor | None:
     if threading.current_thread() is not threading.main_thread() or previous is None:  # None: set outside Python
         return None
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    pool = None
     try:
         pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
         pool.submit(int)  # spawns the process now, while interrupts are ignored
         return pool
     except (OSError, ImportError, NotImplementedError, RuntimeError):
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
         return None
     finally:
         signal.signal(signal.SIGINT, previous)
