@@ -337,6 +337,13 @@ MUTANTS: tuple[Mutant, ...] = (
     Mutant("recent-values-forget-the-technique", "the quadrature's reused evaluations are keyed without the "
            "technique: technique 1 reads technique 0's values", "warpis/analysis/quadrature.py", "_recent_values",
            "int(rows[0]), k, every,", "int(rows[0]), every,", ("tests/test_memo.py",)),
+    Mutant("moments-together-columns-in-union-order", "moments of several technique sets read each set's pdf "
+           "columns in the union's order, not the set's", "warpis/analysis/quadrature.py", "for_set",
+           "pdf[:, [self.union.index(name) for name in techniques]]",
+           "pdf[:, sorted(self.union.index(name) for name in techniques)]", ("tests/test_memo.py",)),
+    Mutant("run-moments-under-another-set", "a run's moments found together are filed under the wrong "
+           "technique sets (the asked set's under the last one's)", "warpis/runs/cell.py", "moments_of",
+           "zip([key[2], *later],", "zip([*later, key[2]],", ("tests/test_memo.py",)),
     # ------------------------------------------------------------------ runs
     Mutant("inside-band-widened", "verify's inside band 3 × 1.96", "warpis/runs/cell.py", "inside",
            "return bool(abs(z) <= Z95)", "return bool(abs(z) <= 3 * Z95)", ("tests/test_verify_verdicts.py",)),

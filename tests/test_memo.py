@@ -174,3 +174,56 @@ def test_a_second_combiner_reads_the_first_ones_evaluations(monkeypatch):
     fresh = quadrature.block_variance(scene, 2, power, blocks)
     assert reused < len(calls) - before  # at least the first density came from the balance run
     assert shared == fresh  # the same digits
+
+
+def _counting_evaluations(monkeypatch) -> list[tuple[tuple[str, ...], int]]:
+    """(technique set, k) of every evaluation of quadrature.evaluate from here on."""
+    calls = []
+    real = quadrature.evaluate
+    monkeypatch.setattr(quadrature, "evaluate",
+                        lambda scene, r, techniques, k, u: calls.append((techniques, k)) or real(scene, r, techniques, k, u))
+    return calls
+
+
+def test_moments_of_several_sets_are_each_ones_own_with_one_evaluation_per_technique(cache, monkeypatch):
+    """Every set's moments at a receiver sit at the same points: moments_together evaluates
+    each technique of the union once and gives each set, in its own technique order, the
+    digits its own computation gives; they are kept per set and read back."""
+    scene = warpis.load_scene("occluded-quad")
+    sets = [("cosine", "light-area"), ("uniform",), ("light-area",), ("light-area", "cosine")]
+    own = [quadrature._moments(scene, 2, s, 32, quadrature.SEED) for s in sets]  # receiver 2: a penumbra
+    assert all(m.I.value > 0 and m.E_is2[0].value > 0 for m in own)
+    quadrature.upload(scene).cached("int_f2", dict).clear()  # ∫ f² too from the union's light-area
+    calls = _counting_evaluations(monkeypatch)
+    together = quadrature.moments_together(scene, 2, sets, sub=32)
+    assert together == own  # Estimate's == compares floats exactly
+    assert sorted(calls) == [(("cosine", "light-area", "uniform"), k) for k in range(3)]
+    assert len(list(cache.glob("*/moments-*.json"))) == len(sets)
+    calls.clear()
+    assert quadrature.moments_together(scene, 2, sets[::-1], sub=32) == own[::-1] and not calls
+    assert quadrature.moments(scene, 2, sets[1], sub=32) == own[1] and not calls
+
+
+def test_a_run_finds_the_moments_of_its_technique_sets_together(cache, monkeypatch):
+    """A runner that names its cells' technique sets gets them all at a receiver's first
+    ask, each technique evaluated once; a set the scene has no lights for is left to its
+    own cell's error."""
+    from warpis.kernels.estimators import parse_estimator
+    from warpis.runs.cell import MIN_TRIALS, CellJob, RunCache
+
+    scene = warpis.load_scene("occluded-quad")
+    run = RunCache()
+    run.expect([CellJob(scene, (2,), parse_estimator(spec), 4, MIN_TRIALS, 0)
+                for spec in ("independent:single:light-area", "independent:balance:light-area+cosine",
+                             "independent:single:envmap")])
+    assert run.technique_sets == {"occluded-quad": [("light-area",), ("light-area", "cosine"), ("envmap",)]}
+    calls = _counting_evaluations(monkeypatch)
+    first = run.moments_of(scene, 2, ("light-area",))
+    assert sorted(calls) == [(("light-area", "cosine"), 0), (("light-area", "cosine"), 1)]
+    calls.clear()
+    both = run.moments_of(scene, 2, ("light-area", "cosine"))
+    assert not calls
+    quadrature.upload(scene).cached("int_f2", dict).clear()
+    monkeypatch.setenv("WARPIS_CACHE_DIR", str(cache.parent / "elsewhere"))  # nothing kept: compute each alone
+    assert [first, both] == [quadrature.moments(scene, 2, s) for s in (("light-area",), ("light-area", "cosine"))]
+    assert len(calls) == 1 + 2  # each set alone (∫ f² from the first one's light-area)

@@ -120,15 +120,26 @@ def _prune(theory: Path, current: Path) -> None:
 
 def kept(path: Path, compute: Callable[[], T], encode: Callable[[T], Any], decode: Callable[[Any], T]) -> T:
     """The result stored at ``path`` (:func:`kept_path`), else ``compute()``, stored there."""
+    value = read(path, decode)
+    if value is None:
+        value = compute()
+        keep(path, value, encode)
+    return value
+
+
+def read(path: Path, decode: Callable[[Any], T]) -> T | None:
+    """The result stored at ``path``, or None where there is none that decodes."""
     try:
         return decode(json.loads(path.read_text()))
     except (OSError, ValueError, TypeError, KeyError, IndexError):
-        pass  # absent, unreadable or another layout: compute it again
-    value = compute()
+        return None  # absent, unreadable or another layout: the caller computes it again
+
+
+def keep(path: Path, value: T, encode: Callable[[T], Any]) -> None:
+    """Store ``value`` at ``path``; a cache that cannot be written only costs the next computation."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with files.replacing(path, durable=False) as fh:  # a reader sees no file or the whole file
             fh.write(json.dumps(encode(value)).encode())
     except OSError:
         pass
-    return value

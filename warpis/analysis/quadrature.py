@@ -767,22 +767,81 @@ _MOMENT_LISTS = ("I_k", "E_is2", "int_fg", "int_f2g")
 def moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int = 256, seed: int = SEED) -> Moments:
     """Reference moments from ``REPLICAS`` × sub² jittered points per technique (kept on
     disk by content: :mod:`warpis.analysis.memo`)."""
-    techniques = tuple(techniques)
-    if not memo.keepable(techniques):
-        return _moments(scene, receiver, techniques, sub, seed)
-    path = memo.kept_path("moments", scene.digest, upload(scene).device, (int(receiver), techniques, sub, seed))
-    return memo.kept(path, lambda: _moments(scene, receiver, techniques, sub, seed), _moments_json, _moments_of)
+    return moments_together(scene, receiver, [tuple(techniques)], sub, seed)[0]
 
 
-def _moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int, seed: int) -> Moments:
-    rng = np.random.default_rng([seed, receiver, 1])
-    blocks = Blocks(1, 1, (1, 1), False)
-    u = jittered_points(blocks, sub, REPLICAS, rng).reshape(-1, 2)
+def moments_together(scene: Scene, receiver: int, technique_sets: Sequence[tuple[str, ...]], sub: int = 256,
+                     seed: int = SEED) -> list[Moments]:
+    """``[moments(scene, receiver, s) for s in technique_sets]``, bit for bit, each technique
+    of their union evaluated once.
+
+    Every set's moments at a receiver sit at the same points (they depend on the seed,
+    the receiver and sub alone), and f and a technique's pdf at T_k(u) do not depend on
+    which set asked for them: so each technique of the union is evaluated once, with the
+    pdf of every technique of the union, and each set reads its own columns (a study of
+    light IS, BSDF IS and their MIS evaluates two techniques, not five).  Results kept on
+    disk are read, and the others kept, one file per set as by :func:`moments`.
+    """
+    sets = list(dict.fromkeys(tuple(s) for s in technique_sets))
+    for s in sets:
+        check_lights(scene, s)
+    device = upload(scene).device
+    paths = {s: memo.kept_path("moments", scene.digest, device, (int(receiver), s, sub, seed))
+             for s in sets if memo.keepable(s)}
+    found = {s: m for s in paths if (m := memo.read(paths[s], _moments_of)) is not None}
+    todo = [s for s in sets if s not in found]
+    if todo:
+        union = tuple(dict.fromkeys(t for s in todo for t in s))
+        values = _UnionValues(scene, receiver, union, _moment_points(receiver, sub, seed))
+        for s in todo:
+            found[s] = _moments(scene, receiver, s, sub, seed, values)
+            if s in paths:
+                memo.keep(paths[s], found[s], _moments_json)
+    return [found[tuple(s)] for s in technique_sets]
+
+
+def _moment_points(receiver: int, sub: int, seed: int) -> np.ndarray:
+    """The (REPLICAS · sub², 2) jittered points of one receiver's moments, whatever the technique set."""
+    return jittered_points(Blocks(1, 1, (1, 1), False), sub, REPLICAS,
+                           np.random.default_rng([seed, receiver, 1])).reshape(-1, 2)
+
+
+class _UnionValues:
+    """f and the pdfs at T_k(u) for any technique set drawn from ``union``, at the points ``u``
+    of one receiver: each technique of the union evaluated once, on first use.
+
+    The kernel finds technique t's column at a sample the same way whatever else is in
+    the set (its pdf where the sampling technique's own pdf and f are > 0, that own pdf
+    where not), so a set's columns read from the union's evaluation are those of the
+    set's own, bit for bit.
+    """
+
+    def __init__(self, scene: Scene, receiver: int, union: tuple[str, ...], u: np.ndarray):
+        self.scene, self.receiver, self.union, self.u = scene, receiver, union, u
+        self.done: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def for_set(self, techniques: tuple[str, ...], k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``evaluate(scene, receiver, techniques, k, u)``."""
+        if not set(techniques) <= set(self.union):
+            return evaluate(self.scene, self.receiver, techniques, k, self.u)
+        t = techniques[k]
+        if t not in self.done:
+            self.done[t] = evaluate(self.scene, self.receiver, self.union, self.union.index(t), self.u)
+        f, pdf = self.done[t]
+        if techniques == self.union:
+            return f, pdf
+        return f, pdf[:, [self.union.index(name) for name in techniques]]
+
+
+def _moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int, seed: int,
+             values: _UnionValues | None = None) -> Moments:
+    u = _moment_points(receiver, sub, seed)
+    values = values or _UnionValues(scene, receiver, techniques, u)
     shape = (REPLICAS, -1)
     i_k, e_is2, fg, f2g, e_h2 = [], [], [], [], []
     f2_mixture = np.zeros(len(u))
     for k, t in enumerate(techniques):
-        f, pdf = evaluate(scene, receiver, techniques, k, u)
+        f, pdf = values.for_set(techniques, k)
         with np.errstate(divide="ignore", invalid="ignore"):
             f2_mixture += np.where(f > 0, f * f / pdf.sum(axis=1), 0.0)
         h = weighted_values("balance", k, f, pdf)
@@ -800,7 +859,7 @@ def _moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int,
         shared = upload(scene).cached("int_f2", dict)  # per content and device
         key = (int(receiver), sub, seed)
         if key not in shared:
-            f, pdf = evaluate(scene, receiver, ("light-area",), 0, u)
+            f, pdf = values.for_set(("light-area",), 0)
             w = weighted_values("single", 0, f, pdf)
             shared[key] = _mean_estimate((w * f).reshape(shape))
         int_f2 = shared[key]

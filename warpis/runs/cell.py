@@ -33,11 +33,12 @@ from scipy.special import ndtri
 
 from ..analysis.reference import Reference, reference
 from ..stats import VarianceEstimate
-from ..analysis.quadrature import Estimate, Moments, moments
+from ..analysis.quadrature import Estimate, Moments, moments_together
 from ..analysis.theory import BOUNDS, predictions
 from ..errors import WarpisError
 from ..kernels.engine import run_moments, warm
 from ..kernels.estimators import Estimator
+from ..kernels.techniques import check_lights
 from ..limits import default_threads
 from ..scenes import Scene
 
@@ -105,10 +106,14 @@ def _finite(x: float) -> float | None:
 class RunCache:
     """What the cells of one run share: references per (scene, receivers), moments per
     (scene, receiver, technique set).  Plain dicts keyed by plain values; scenes are told
-    apart by name (a run never holds two scenes of one name)."""
+    apart by name (a run never holds two scenes of one name).  ``technique_sets`` names,
+    per scene, the sets whose moments the run will ask for (the runner knows its cells):
+    a receiver's first moments are then found for all of them together, each technique
+    evaluated once (``moments_together``)."""
 
     references: dict[tuple[str, tuple[int, ...]], dict[int, Reference]] = field(default_factory=dict)
     moments: dict[tuple[str, int, tuple[str, ...]], Moments] = field(default_factory=dict)
+    technique_sets: dict[str, list[tuple[str, ...]]] = field(default_factory=dict)
 
     def reference(self, scene: Scene, receivers: Sequence[int]) -> dict[int, Reference]:
         """Receiver → reference, for all ``receivers`` at once (computed on first use)."""
@@ -120,8 +125,29 @@ class RunCache:
     def moments_of(self, scene: Scene, receiver: int, techniques: tuple[str, ...]) -> Moments:
         key = (scene.name, int(receiver), tuple(techniques))
         if key not in self.moments:
-            self.moments[key] = moments(scene, int(receiver), key[2])
+            later = [s for s in self.technique_sets.get(scene.name, ())
+                     if s != key[2] and (scene.name, key[1], s) not in self.moments and lights_suit(scene, s)]
+            for s, mom in zip([key[2], *later], moments_together(scene, key[1], [key[2], *later])):
+                self.moments[(scene.name, key[1], s)] = mom
         return self.moments[key]
+
+    def expect(self, jobs: Sequence[CellJob]) -> None:
+        """Note the technique sets whose moments ``jobs`` will ask for (those that predict)."""
+        for job in jobs:
+            if job.predict:
+                sets = self.technique_sets.setdefault(job.scene.name, [])
+                if job.estimator.techniques not in sets:
+                    sets.append(job.estimator.techniques)
+
+
+def lights_suit(scene: Scene, techniques: tuple[str, ...]) -> bool:
+    """Whether ``scene`` has the lights ``techniques`` sample (a set that has not is its own
+    cell's one-line error, not another cell's)."""
+    try:
+        check_lights(scene, techniques)
+    except WarpisError:
+        return False
+    return True
 
 
 # --------------------------------------------------------------------------- one cell
@@ -289,6 +315,7 @@ class LocalRunner:
         self.cache = RunCache()
 
     def measure(self, jobs: Sequence[CellJob]) -> Iterator[tuple[int, MeasuredCell]]:
+        self.cache.expect(jobs)
         for i, job in enumerate(jobs):
             yield i, measure_cell(job.scene, job.receivers, job.estimator, job.n, job.trials, job.seed, self.cache,
                                   predict=job.predict, threads=self.threads)
