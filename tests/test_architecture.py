@@ -145,3 +145,20 @@ def test_the_warp_reader_sees_an_import():
 def test_the_floors_under_the_kernels_import_no_warp_on_load(module):
     lines = module_level_warp(MODULES[module])
     assert not lines, f"{module} imports warp at line(s) {lines}"
+
+
+def test_a_wheel_ships_every_package_scene_and_compiled_kernel():
+    """The suite runs on an editable install, which finds every folder; a user's
+    ``pip install .`` ships only what pyproject.toml lists: every package of warpis, every
+    file of the bundled scenes, and the kernels compiled ahead of time."""
+    import fnmatch
+    import tomllib
+
+    root = PACKAGE.parent
+    conf = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert {module_name(p) for p in PACKAGE.rglob("__init__.py")} <= set(conf["packages"])
+    for package, folder in (("warpis.meshes", "meshes"), ("warpis.kernels.precompiled", "warpis/kernels/precompiled")):
+        files = [p.relative_to(root / folder).as_posix() for p in (root / folder).rglob("*")
+                 if p.is_file() and p.suffix not in (".py", ".pyc")]
+        globs = conf["package-data"][package]
+        assert files and not [f for f in files if not any(fnmatch.fnmatch(f, g) for g in globs)], package
