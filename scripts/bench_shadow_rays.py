@@ -1,29 +1,40 @@
-"""Shadow rays four at a time: a trial's light-sample shadow rays (one origin) traversed
-together through the 4-wide BVH, against one at a time as warpis casts them.
+"""Shadow rays three ways: one at a time through warpis's 4-wide BVH (what warpis casts),
+four at a time through the same tree, and one at a time through Embree, called from the
+Warp kernel.
 
-    python scripts/bench_packets.py [--scenes occluded-quad heavy-occluder] [--n 64]
-                                    [--trials 2000] [--repeat 5]
+    python scripts/bench_shadow_rays.py [--scenes occluded-quad heavy-occluder] [--n 64]
+                                        [--trials 2000] [--repeat 5]
 
-Both kernels draw the same ``light-area`` samples (``sample_light_point``) at every
-receiver of the scene and cast the same shadow rays as ``radiance_unless_blocked``: from
-where the ray leaves the receiver's slab to where it enters the emitter's, ignoring hits
-on either plane.  The scalar kernel asks ``any_hit_between`` for each ray.  The packet
-kernel traverses four rays at once with one node stack: each entry carries the bit mask
-of the rays that entered it, a node's boxes are tested for each of those rays
-(``_entries``), a leaf's triangles likewise (``_leaf_blocks``), and a ray leaves the
-packet when something blocks it.  The visible-ray counts of the two must agree exactly
-(the script stops otherwise); the rate is rays (samples) per second of one launch, one
-thread, the sampling included.  The sides alternate ``--repeat`` times; medians.
+Every side draws the same ``light-area`` samples (``sample_light_point``) at every
+receiver of the scene and casts the same shadow rays as ``radiance_unless_blocked``: from
+where the ray leaves the receiver's slab to where it enters the emitter's.
 
-A benchmark of a lever that was measured and not taken (the issue on time to the first
-answer asked for it): in Warp's scalar CPU code a packet shares the stack and the node
-loads, not the box and triangle tests, which are most of a query.  It reads private
-functions of ``warpis.kernels.bvh``.
+* *one at a time*: ``_any``, as ``any_hit_between`` calls it (hits on the receiver's and
+  the emitter's planes ignored).
+* *four together*: a trial's rays (one origin) traversed four at a time with one node
+  stack, each entry carrying the bit mask of the rays that entered it; a node's boxes
+  are tested for each of those rays (``_entries``), a leaf's triangles likewise
+  (``_leaf_blocks``), and a ray leaves the packet when something blocks it.  Its visible
+  counts must equal one at a time's exactly (the script stops otherwise).
+* *Embree*: Embree 4's ``rtcOccluded1`` on a scene of the same float32 triangles (robust
+  mode, watertight), called by address from the kernel (``wp.func_native``; Warp's CPU
+  JIT calls any function pointer it is given).  Its own triangle arithmetic, without the
+  ignored planes: the rays whose visibility differs from warpis's are counted and shown.
+  Needs ``embreex`` (the ``bench`` extra), whose wheel bundles libembree4; left out, with
+  a line saying why, where it is missing.
+
+The rate is rays (samples) per second of one launch on one thread, the sampling included;
+the sides alternate ``--repeat`` times, medians.  A benchmark of levers for the issue on
+time to the first answer: the packet does not pay in Warp's scalar CPU code (it shares the
+stack and the node loads, not the box and triangle tests); Embree, whose traversal is
+vectorised within each ray, does.  It reads private functions of ``warpis.kernels.bvh``.
 """
 
 from __future__ import annotations
 
 import argparse
+import ctypes
+import glob
 import os
 import statistics
 import time
@@ -169,11 +180,89 @@ def packet_kernel(scene: SceneData, recv: ReceiverData, n: wp.int32, out: wp.arr
     out[i, j] = visible
 
 
-def timed(kernel, up, receivers: int, trials: int, n: int) -> tuple[float, np.ndarray]:
+# --------------------------------------------------------------------------- Embree, by address
+
+EMBREE_OCCLUDED = """
+struct alignas(16) EmbreeRay { float ox, oy, oz, tnear, dx, dy, dz, time, tfar; wp::uint32 mask, id, flags; };
+typedef void (*occluded_t)(void*, EmbreeRay*, void*);
+EmbreeRay r;
+r.ox = o[0]; r.oy = o[1]; r.oz = o[2]; r.tnear = 0.0f;
+r.dx = d[0]; r.dy = d[1]; r.dz = d[2]; r.time = 0.0f; r.tfar = t_max;
+r.mask = 0xFFFFFFFFu; r.id = 0; r.flags = 0;
+((occluded_t)fn)((void*)scn, &r, nullptr);
+return r.tfar < 0.0f;
+"""
+
+
+@wp.func_native(EMBREE_OCCLUDED)
+def embree_occluded(fn: wp.uint64, scn: wp.uint64, o: wp.vec3, d: wp.vec3, t_max: float) -> bool:
+    """Embree's rtcOccluded1 (at address ``fn``) on scene ``scn``: something at 0 ≤ t ≤ t_max (tfar set to −inf)."""
+
+
+@wp.kernel
+def embree_kernel(scene: SceneData, recv: ReceiverData, n: wp.int32, fn: wp.uint64, scn: wp.uint64,
+                  out: wp.array2d(dtype=wp.int32)):
+    i, j = wp.tid()
+    sp = shading_point(scene, recv, i)
+    s = stream(wp.uint32(1), i, j, 0)
+    visible = wp.int32(0)
+    for q in range(n):
+        smp = sample_light_point(LIGHT_AREA, scene, sp, wp.vec2(uniform(s, q, 0), uniform(s, q, 1)))
+        r, _planes, length = shadow_ray(scene, sp.p, sp.n, sp.ng, sp.slab, smp.w, smp.emitter, smp.t)
+        if wp.dot(sp.n, smp.w) > 0.0 and length > 0.0 and not embree_occluded(fn, scn, r.o, smp.w, length):
+            visible += 1
+    out[i, j] = visible
+
+
+class Embree:
+    """Embree 4 through ctypes: the library embreex bundles, one device, scenes of triangles."""
+
+    def __init__(self) -> None:
+        import embreex  # the bench extra
+
+        (path,) = glob.glob(os.path.join(os.path.dirname(embreex.__file__) + ".libs", "libembree4*"))
+        lib = self.lib = ctypes.CDLL(path)
+        vp = ctypes.c_void_p
+        lib.rtcNewDevice.restype = vp
+        lib.rtcNewDevice.argtypes = [ctypes.c_char_p]
+        lib.rtcNewScene.restype = vp
+        lib.rtcNewScene.argtypes = [vp]
+        lib.rtcSetSceneFlags.argtypes = [vp, ctypes.c_int]
+        lib.rtcNewGeometry.restype = vp
+        lib.rtcNewGeometry.argtypes = [vp, ctypes.c_int]
+        lib.rtcSetNewGeometryBuffer.restype = vp
+        lib.rtcSetNewGeometryBuffer.argtypes = [vp, ctypes.c_int, ctypes.c_uint, ctypes.c_int, ctypes.c_size_t,
+                                                ctypes.c_size_t]
+        lib.rtcAttachGeometry.restype = ctypes.c_uint
+        lib.rtcAttachGeometry.argtypes = [vp, vp]
+        for name in ("rtcCommitGeometry", "rtcReleaseGeometry", "rtcCommitScene"):
+            getattr(lib, name).argtypes = [vp]
+        self.device = lib.rtcNewDevice(None)
+        self.occluded = ctypes.cast(lib.rtcOccluded1, vp).value
+
+    def scene(self, vertices: np.ndarray, triangles: np.ndarray) -> int:
+        """A committed scene of the triangles (float32 corners, as warpis's): its handle."""
+        lib = self.lib
+        scn = lib.rtcNewScene(self.device)
+        lib.rtcSetSceneFlags(scn, 2)  # RTC_SCENE_FLAG_ROBUST: watertight, no reduced accuracy
+        geometry = lib.rtcNewGeometry(self.device, 0)  # RTC_GEOMETRY_TYPE_TRIANGLE
+        v = np.ascontiguousarray(vertices, np.float32)
+        t = np.ascontiguousarray(triangles, np.uint32)
+        ctypes.memmove(lib.rtcSetNewGeometryBuffer(geometry, 1, 0, 0x9003, 12, len(v)), v.ctypes.data, v.nbytes)
+        ctypes.memmove(lib.rtcSetNewGeometryBuffer(geometry, 0, 0, 0x5003, 12, len(t)), t.ctypes.data, t.nbytes)
+        lib.rtcCommitGeometry(geometry)
+        lib.rtcAttachGeometry(scn, geometry)
+        lib.rtcReleaseGeometry(geometry)
+        lib.rtcCommitScene(scn)
+        return scn
+
+
+
+def timed(kernel, up, receivers: int, trials: int, n: int, extra: tuple = ()) -> tuple[float, np.ndarray]:
     """(rays per second, visible counts) of one launch."""
     out = wp.zeros((receivers, trials), dtype=wp.int32, device="cpu")
     start = time.perf_counter()
-    wp.launch(kernel, dim=(receivers, trials), inputs=[up.data, up.receiver_data, n, out], device="cpu")
+    wp.launch(kernel, dim=(receivers, trials), inputs=[up.data, up.receiver_data, n, *extra, out], device="cpu")
     wp.synchronize_device("cpu")
     return receivers * trials * n / (time.perf_counter() - start), out.numpy()
 
@@ -189,21 +278,37 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--n must be a multiple of 4")
     wp.config.quiet = True
     wp.load_module(scalar_kernel.module, device="cpu")
+    try:
+        embree: Embree | None = Embree()
+    except (ImportError, OSError, ValueError) as e:
+        embree = None
+        print(f"Embree left out: {e}")
     print(f"load {os.getloadavg()[0]:.2f}; M rays/s, one thread, medians of {args.repeat}")
     for name in args.scenes:
         scene = warpis.load_scene(name)
         up = upload(scene)
-        rates: dict[str, list[float]] = {"one at a time": [], "four together": []}
+        sides = [("one at a time", scalar_kernel, ()), ("four together", packet_kernel, ())]
+        if embree is not None:
+            handle = embree.scene(scene.vertices, scene.triangles)
+            sides.append(("Embree", embree_kernel, (wp.uint64(embree.occluded), wp.uint64(handle))))
+        rates: dict[str, list[float]] = {label: [] for label, _, _ in sides}
         for _ in range(args.repeat):
-            counts = []
-            for label, kernel in (("one at a time", scalar_kernel), ("four together", packet_kernel)):
-                rate, visible = timed(kernel, up, len(scene.receivers), args.trials, args.n)
+            counts = {}
+            for label, kernel, extra in sides:
+                rate, counts[label] = timed(kernel, up, len(scene.receivers), args.trials, args.n, extra)
                 rates[label].append(rate / 1e6)
-                counts.append(visible)
-            if not np.array_equal(*counts):
+            if not np.array_equal(counts["one at a time"], counts["four together"]):
                 raise SystemExit(f"{name}: the packet kernel sees other rays blocked than the scalar one")
-        one, four = (statistics.median(v) for v in rates.values())
-        print(f"{name:16s} one at a time {one:6.2f}   four together {four:6.2f}   ratio {four / one:.2f}")
+        one = statistics.median(rates["one at a time"])
+        line = f"{name:16s} one at a time {one:6.2f}"
+        for label in list(rates)[1:]:
+            rate = statistics.median(rates[label])
+            line += f"   {label} {rate:6.2f} ({rate / one:.2f}×)"
+        print(line)
+        if embree is not None:
+            diff = counts["Embree"] - counts["one at a time"]
+            print(f"{'':16s} Embree's visible counts differ in {np.count_nonzero(diff)} of {diff.size} trials "
+                  f"(at least {int(np.abs(diff).sum())} of {diff.size * args.n} rays)")
     print(f"load {os.getloadavg()[0]:.2f}")
     return 0
 
