@@ -134,21 +134,6 @@ def shadow_ray(scene: SceneData, p: wp.vec3, n: wp.vec3, ng: wp.vec3, slab: floa
 
 
 @wp.kernel
-def scalar_kernel(scene: SceneData, recv: ReceiverData, n: wp.int32, out: wp.array2d(dtype=wp.int32)):
-    i, j = wp.tid()
-    sp = shading_point(scene, recv, i)
-    s = stream(wp.uint32(1), i, j, 0)
-    visible = wp.int32(0)
-    for q in range(n):
-        smp = sample_light_point(LIGHT_AREA, scene, sp, wp.vec2(uniform(s, q, 0), uniform(s, q, 1)))
-        r, planes, length = shadow_ray(scene, sp.p, sp.n, sp.ng, sp.slab, smp.w, smp.emitter, smp.t)
-        if wp.dot(sp.n, smp.w) > 0.0 and length > 0.0 and not bvh._any(scene.bvh, scene.mesh, r, smp.w, length,
-                                                                         planes):
-            visible += 1
-    out[i, j] = visible
-
-
-@wp.kernel
 def packet_kernel(scene: SceneData, recv: ReceiverData, n: wp.int32, out: wp.array2d(dtype=wp.int32)):
     i, j = wp.tid()
     sp = shading_point(scene, recv, i)
@@ -200,17 +185,25 @@ def embree_occluded(fn: wp.uint64, scn: wp.uint64, o: wp.vec3, d: wp.vec3, t_max
 
 
 @wp.kernel
-def embree_kernel(scene: SceneData, recv: ReceiverData, n: wp.int32, fn: wp.uint64, scn: wp.uint64,
-                  out: wp.array2d(dtype=wp.int32)):
+def one_at_a_time_kernel(scene: SceneData, recv: ReceiverData, n: wp.int32, fn: wp.uint64, scn: wp.uint64,
+                         out: wp.array2d(dtype=wp.int32)):
+    """Each shadow ray alone: through warpis's tree (``_any``, as ``any_hit_between``) where
+    ``fn`` is 0, else through Embree's rtcOccluded1 at address ``fn`` on scene ``scn``."""
     i, j = wp.tid()
     sp = shading_point(scene, recv, i)
     s = stream(wp.uint32(1), i, j, 0)
     visible = wp.int32(0)
     for q in range(n):
         smp = sample_light_point(LIGHT_AREA, scene, sp, wp.vec2(uniform(s, q, 0), uniform(s, q, 1)))
-        r, _planes, length = shadow_ray(scene, sp.p, sp.n, sp.ng, sp.slab, smp.w, smp.emitter, smp.t)
-        if wp.dot(sp.n, smp.w) > 0.0 and length > 0.0 and not embree_occluded(fn, scn, r.o, smp.w, length):
-            visible += 1
+        r, planes, length = shadow_ray(scene, sp.p, sp.n, sp.ng, sp.slab, smp.w, smp.emitter, smp.t)
+        if wp.dot(sp.n, smp.w) > 0.0 and length > 0.0:
+            blocked = bool(False)  # noqa: UP018 (a Warp variable the branches below assign)
+            if fn == wp.uint64(0):
+                blocked = bvh._any(scene.bvh, scene.mesh, r, smp.w, length, planes)
+            else:
+                blocked = embree_occluded(fn, scn, r.o, smp.w, length)
+            if not blocked:
+                visible += 1
     out[i, j] = visible
 
 
@@ -277,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.n % 4:
         parser.error("--n must be a multiple of 4")
     wp.config.quiet = True
-    wp.load_module(scalar_kernel.module, device="cpu")
+    wp.load_module(one_at_a_time_kernel.module, device="cpu")
     try:
         embree: Embree | None = Embree()
     except (ImportError, OSError, ValueError) as e:
@@ -287,10 +280,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.scenes:
         scene = warpis.load_scene(name)
         up = upload(scene)
-        sides = [("one at a time", scalar_kernel, ()), ("four together", packet_kernel, ())]
+        sides = [("one at a time", one_at_a_time_kernel, (wp.uint64(0), wp.uint64(0))),
+                 ("four together", packet_kernel, ())]
         if embree is not None:
             handle = embree.scene(scene.vertices, scene.triangles)
-            sides.append(("Embree", embree_kernel, (wp.uint64(embree.occluded), wp.uint64(handle))))
+            sides.append(("Embree", one_at_a_time_kernel, (wp.uint64(embree.occluded), wp.uint64(handle))))
         rates: dict[str, list[float]] = {label: [] for label, _, _ in sides}
         for _ in range(args.repeat):
             counts = {}
