@@ -835,8 +835,8 @@ class _UnionValues:
 
 def _moments(scene: Scene, receiver: int, techniques: tuple[str, ...], sub: int, seed: int,
              values: _UnionValues | None = None) -> Moments:
-    u = _moment_points(receiver, sub, seed)
-    values = values or _UnionValues(scene, receiver, techniques, u)
+    values = values or _UnionValues(scene, receiver, techniques, _moment_points(receiver, sub, seed))
+    u = values.u
     shape = (REPLICAS, -1)
     i_k, e_is2, fg, f2g, e_h2 = [], [], [], [], []
     f2_mixture = np.zeros(len(u))
