@@ -341,6 +341,9 @@ MUTANTS: tuple[Mutant, ...] = (
            "columns in the union's order, not the set's", "warpis/analysis/quadrature.py", "for_set",
            "pdf[:, [self.union.index(name) for name in techniques]]",
            "pdf[:, sorted(self.union.index(name) for name in techniques)]", ("tests/test_memo.py",)),
+    Mutant("cluster-moments-of-the-first-set", "on a Dask cluster every technique set of a receiver gets the "
+           "moments of its first", "warpis/runs/cluster.py", "_submit", "client.submit(pick, group, i, pure=False)",
+           "client.submit(pick, group, 0, pure=False)", ("tests/test_cluster.py",)),
     Mutant("run-moments-under-another-set", "a run's moments found together are filed under the wrong "
            "technique sets (the asked set's under the last one's)", "warpis/runs/cell.py", "moments_of",
            "zip([key[2], *later],", "zip([*later, key[2]],", ("tests/test_memo.py",)),

@@ -78,6 +78,21 @@ def test_verify_on_two_workers_gives_the_local_rows(runner):
     assert dask.rows == local.rows and len(local.rows) == 8
 
 
+
+def test_a_receivers_moments_are_one_task_for_all_its_technique_sets(runner, monkeypatch):
+    """As a local run finds them (RunCache): one moments task per receiver, each technique
+    of its sets evaluated once, and the rows a local run gives."""
+    submitted = []
+    real = runner.client.submit
+    monkeypatch.setattr(runner.client, "submit",
+                        lambda fn, *args, **kwargs: submitted.append((fn.__name__, args)) or real(fn, *args, **kwargs))
+    scene = warpis.load_scene("occluded-quad")
+    ests = ["independent:single:light-area", "independent:balance:light-area+cosine", "independent:single:cosine"]
+    dask = verify(scene, estimators=ests, n_values=[4], trials=200, receivers=[0, 2], runner=runner)
+    sets = [("light-area",), ("light-area", "cosine"), ("cosine",)]
+    assert [args[1:] for name, args in submitted if name == "moments_task"] == [(0, sets), (2, sets)]
+    assert dask.rows == verify(scene, estimators=ests, n_values=[4], trials=200, receivers=[0, 2]).rows
+
 def test_a_study_started_on_the_cluster_is_finished_locally(tmp_path, runner):
     """Cells keep their keys whatever ran them: the cluster's cells are skipped locally."""
     run_study(load_study(write_study(tmp_path, n="[4]")), tmp_path / "out", runner=runner)

@@ -8,7 +8,8 @@ same blocks in the same order (``run_moments``).  So the work spreads freely:
   batched, each unit about ``UNIT_EVALUATIONS`` integrand evaluations; a unit returns
   each block's moments (count, mean, M2..M4 per receiver), never raw trials;
 * **references** — one task per (scene, receivers), **moments** — one per (scene,
-  receiver, technique set), as :class:`~warpis.runs.cell.RunCache` shares them locally;
+  receiver) for every technique set of the run, each technique evaluated once, as
+  :class:`~warpis.runs.cell.RunCache` finds them locally (``moments_together``);
 * **scoring** — one task per cell: its blocks merged in order, its interval, reference
   and predictions (:func:`warpis.runs.cell.score_cell`).
 
@@ -34,11 +35,11 @@ from typing import Any
 
 from ..analysis.reference import Reference, reference
 from ..stats import SampleMoments
-from ..analysis.quadrature import Moments, moments
+from ..analysis.quadrature import Moments, moments_together
 from ..errors import WarpisError
 from ..kernels.engine import BLOCK, block_count, run_block_moments, warm
 from ..scenes import Scene
-from .cell import LEVEL, CellJob, MeasuredCell, Row, score_cell
+from .cell import LEVEL, CellJob, MeasuredCell, Row, lights_suit, score_cell
 
 EXTRA = 'pip install "warpis[cluster]"'
 # Integrand evaluations per trial unit: a few seconds of one core, so that the scheduler's
@@ -111,9 +112,14 @@ def reference_task(scene: Scene, receivers: tuple[int, ...]) -> dict[int, Refere
     return {r.index: r for r in reference(_on_device(scene), list(receivers))}
 
 
-def moments_task(scene: Scene, receiver: int, techniques: tuple[str, ...]) -> Moments:
-    """As ``RunCache.moments_of``."""
-    return moments(_on_device(scene), receiver, techniques)
+def moments_task(scene: Scene, receiver: int, technique_sets: list[tuple[str, ...]]) -> list[Moments]:
+    """As ``RunCache.moments_of`` for every set of ``technique_sets`` at once: their moments, in order."""
+    return moments_together(_on_device(scene), receiver, technique_sets)
+
+
+def pick(values: list[Any], i: int) -> Any:
+    """``values[i]``: one set's moments from a receiver's moments task."""
+    return values[i]
 
 
 def score_task(scene: Scene, job: CellJob, units: list[list[tuple[list[SampleMoments], float]]],
@@ -273,16 +279,26 @@ class ClusterRunner:
         for job in jobs:  # each scene once, by content
             if job.scene.digest not in scenes:
                 scenes[job.scene.digest] = client.scatter(job.scene, hash=False, broadcast=True)
-        refs, moms = {}, {}
+        refs: dict[tuple, Any] = {}
+        # (scene, receiver) → its technique sets, found by one task; a set the scene has no
+        # lights for gets a task of its own, whose error is its own cell's alone.
+        sets: dict[tuple, list[tuple[str, ...]]] = {}
         for job in jobs:
-            scene = scenes[job.scene.digest]
             key = (job.scene.digest, job.receivers)
             if key not in refs:
-                refs[key] = client.submit(reference_task, scene, job.receivers, pure=False)
+                refs[key] = client.submit(reference_task, scenes[job.scene.digest], job.receivers, pure=False)
+            techniques = job.estimator.techniques
+            alone = () if lights_suit(job.scene, techniques) else (techniques,)
             for r in job.receivers if job.predict else ():
-                mkey = (job.scene.digest, r, job.estimator.techniques)
-                if mkey not in moms:
-                    moms[mkey] = client.submit(moments_task, scene, r, job.estimator.techniques, pure=False)
+                listed = sets.setdefault((job.scene.digest, r, *alone), [])
+                if techniques not in listed:
+                    listed.append(techniques)
+        moms, groups = {}, []
+        for (digest, r, *_), listed in sets.items():
+            group = client.submit(moments_task, scenes[digest], r, listed, pure=False)
+            groups.append(group)
+            for i, techniques in enumerate(listed):
+                moms[(digest, r, techniques)] = client.submit(pick, group, i, pure=False)
         units = plan_units(jobs, self.unit_evaluations)
         places: dict[int, list[tuple[int, int]]] = {c: [] for c in range(len(jobs))}
         for u, unit in enumerate(units):
@@ -306,5 +322,5 @@ class ClusterRunner:
                                    [(local[u], i) for u, i in places[c]], refs[(job.scene.digest, job.receivers)],
                                    mom, pure=False)
             scored[future] = c
-        futures += [*scenes.values(), *refs.values(), *moms.values(), *unit_futures.values(), *scored]
+        futures += [*scenes.values(), *refs.values(), *groups, *moms.values(), *unit_futures.values(), *scored]
         return scored
