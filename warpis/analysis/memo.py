@@ -1,8 +1,8 @@
 """Theory results kept on disk by content, so that the next process reuses them.
 
 An exact variance or a receiver's reference moments costs seconds of dense quadrature
-(most of a study's time beside its trials: a cold ``warpis demo`` spends about 26 s on
-moments and predictions, both cores busy, against 13 s of trials), and depends on nothing
+(most of a study's time beside its trials: a cold ``warpis demo`` spends about 30 s on
+moments and predictions, both cores busy, against 17 s of trials), and depends on nothing
 but its inputs.  So each is
 kept in ``cache_dir()/theory/`` (``WARPIS_CACHE_DIR``, else ``~/.cache/warpis``), in a
 JSON file named by the SHA-256 of everything it depends on:
