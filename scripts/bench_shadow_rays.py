@@ -207,6 +207,9 @@ def one_at_a_time_kernel(scene: SceneData, recv: ReceiverData, n: wp.int32, fn: 
     out[i, j] = visible
 
 
+ROBUST = 1 << 2  # RTC_SCENE_FLAG_ROBUST (rtcore_scene.h): watertight traversal, no reduced accuracy
+
+
 class Embree:
     """Embree 4 through ctypes: the library embreex bundles, one device, scenes of triangles."""
 
@@ -237,7 +240,7 @@ class Embree:
         """A committed scene of the triangles (float32 corners, as warpis's): its handle."""
         lib = self.lib
         scn = lib.rtcNewScene(self.device)
-        lib.rtcSetSceneFlags(scn, 2)  # RTC_SCENE_FLAG_ROBUST: watertight, no reduced accuracy
+        lib.rtcSetSceneFlags(scn, ROBUST)
         geometry = lib.rtcNewGeometry(self.device, 0)  # RTC_GEOMETRY_TYPE_TRIANGLE
         v = np.ascontiguousarray(vertices, np.float32)
         t = np.ascontiguousarray(triangles, np.uint32)
