@@ -345,8 +345,8 @@ MUTANTS: tuple[Mutant, ...] = (
            "moments of its first", "warpis/runs/cluster.py", "_submit", "client.submit(pick, group, i, pure=False)",
            "client.submit(pick, group, 0, pure=False)", ("tests/test_cluster.py",)),
     Mutant("run-moments-under-another-set", "a run's moments found together are filed under the wrong "
-           "technique sets (the asked set's under the last one's)", "warpis/runs/cell.py", "moments_of",
-           "zip([key[2], *later],", "zip([*later, key[2]],", ("tests/test_memo.py",)),
+           "technique sets (in reverse order)", "warpis/runs/cell.py", "moments_of",
+           "zip(wanted, moments_together", "zip(wanted[::-1], moments_together", ("tests/test_memo.py",)),
     # ------------------------------------------------------------------ runs
     Mutant("inside-band-widened", "verify's inside band 3 × 1.96", "warpis/runs/cell.py", "inside",
            "return bool(abs(z) <= Z95)", "return bool(abs(z) <= 3 * Z95)", ("tests/test_verify_verdicts.py",)),

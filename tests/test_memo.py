@@ -215,8 +215,10 @@ def test_a_run_finds_the_moments_of_its_technique_sets_together(cache, monkeypat
     run = RunCache()
     run.expect([CellJob(scene, (2,), parse_estimator(spec), 4, MIN_TRIALS, 0)
                 for spec in ("independent:single:light-area", "independent:balance:light-area+cosine",
-                             "independent:single:envmap")])
-    assert run.technique_sets == {"occluded-quad": [("light-area",), ("light-area", "cosine"), ("envmap",)]}
+                             "independent:single:envmap")]
+               + [CellJob(scene, (5,), parse_estimator("independent:single:cosine"), 4, MIN_TRIALS, 0)])
+    assert run.technique_sets == {(scene.digest, 2): [("light-area",), ("light-area", "cosine")],  # not envmap
+                                  (scene.digest, 5): [("cosine",)]}  # only where its cell asks
     calls = _counting_evaluations(monkeypatch)
     first = run.moments_of(scene, 2, ("light-area",))
     assert sorted(calls) == [(("light-area", "cosine"), 0), (("light-area", "cosine"), 1)]

@@ -107,13 +107,13 @@ class RunCache:
     """What the cells of one run share: references per (scene, receivers), moments per
     (scene, receiver, technique set).  Plain dicts keyed by plain values; scenes are told
     apart by name (a run never holds two scenes of one name).  ``technique_sets`` names,
-    per scene, the sets whose moments the run will ask for (the runner knows its cells):
-    a receiver's first moments are then found for all of them together, each technique
-    evaluated once (``moments_together``)."""
+    per (scene digest, receiver), the sets whose moments the run will ask for there (the
+    runner knows its cells: :func:`moment_sets`); a receiver's first moments are then found
+    for all of them together, each technique evaluated once (``moments_together``)."""
 
     references: dict[tuple[str, tuple[int, ...]], dict[int, Reference]] = field(default_factory=dict)
     moments: dict[tuple[str, int, tuple[str, ...]], Moments] = field(default_factory=dict)
-    technique_sets: dict[str, list[tuple[str, ...]]] = field(default_factory=dict)
+    technique_sets: dict[tuple[str, int], list[tuple[str, ...]]] = field(default_factory=dict)
 
     def reference(self, scene: Scene, receivers: Sequence[int]) -> dict[int, Reference]:
         """Receiver → reference, for all ``receivers`` at once (computed on first use)."""
@@ -125,29 +125,38 @@ class RunCache:
     def moments_of(self, scene: Scene, receiver: int, techniques: tuple[str, ...]) -> Moments:
         key = (scene.name, int(receiver), tuple(techniques))
         if key not in self.moments:
-            later = [s for s in self.technique_sets.get(scene.name, ())
-                     if s != key[2] and (scene.name, key[1], s) not in self.moments and lights_suit(scene, s)]
-            for s, mom in zip([key[2], *later], moments_together(scene, key[1], [key[2], *later])):
+            wanted = [key[2], *(s for s in self.technique_sets.get((scene.digest, key[1]), ())
+                                if s != key[2] and (scene.name, key[1], s) not in self.moments)]
+            for s, mom in zip(wanted, moments_together(scene, key[1], wanted)):
                 self.moments[(scene.name, key[1], s)] = mom
         return self.moments[key]
 
     def expect(self, jobs: Sequence[CellJob]) -> None:
-        """Note the technique sets whose moments ``jobs`` will ask for (those that predict)."""
-        for job in jobs:
-            if job.predict:
-                sets = self.technique_sets.setdefault(job.scene.name, [])
-                if job.estimator.techniques not in sets:
-                    sets.append(job.estimator.techniques)
+        """Note the technique sets whose moments ``jobs`` will ask for (:func:`moment_sets`)."""
+        for where, sets in moment_sets(jobs).items():
+            known = self.technique_sets.setdefault(where, [])
+            known += [s for s in sets if s not in known]
 
 
-def lights_suit(scene: Scene, techniques: tuple[str, ...]) -> bool:
-    """Whether ``scene`` has the lights ``techniques`` sample (a set that has not is its own
-    cell's one-line error, not another cell's)."""
-    try:
-        check_lights(scene, techniques)
-    except WarpisError:
-        return False
-    return True
+def moment_sets(jobs: Sequence[CellJob]) -> dict[tuple[str, int], list[tuple[str, ...]]]:
+    """(scene digest, receiver) → the technique sets whose moments the cells of ``jobs``
+    that predict ask for there, in the order first asked: what one ``moments_together``
+    finds.  A set the scene has no lights for is left out: it is its own cell's one-line
+    error, not every cell's at that receiver."""
+    out: dict[tuple[str, int], list[tuple[str, ...]]] = {}
+    for job in jobs:
+        if not job.predict:
+            continue
+        techniques = job.estimator.techniques
+        try:
+            check_lights(job.scene, techniques)
+        except WarpisError:
+            continue
+        for r in job.receivers:
+            sets = out.setdefault((job.scene.digest, int(r)), [])
+            if techniques not in sets:
+                sets.append(techniques)
+    return out
 
 
 # --------------------------------------------------------------------------- one cell

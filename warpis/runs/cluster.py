@@ -39,7 +39,7 @@ from ..analysis.quadrature import Moments, moments_together
 from ..errors import WarpisError
 from ..kernels.engine import BLOCK, block_count, run_block_moments, warm
 from ..scenes import Scene
-from .cell import LEVEL, CellJob, MeasuredCell, Row, lights_suit, score_cell
+from .cell import LEVEL, CellJob, MeasuredCell, Row, moment_sets, score_cell
 
 EXTRA = 'pip install "warpis[cluster]"'
 # Integrand evaluations per trial unit: a few seconds of one core, so that the scheduler's
@@ -279,26 +279,28 @@ class ClusterRunner:
         for job in jobs:  # each scene once, by content
             if job.scene.digest not in scenes:
                 scenes[job.scene.digest] = client.scatter(job.scene, hash=False, broadcast=True)
-        refs: dict[tuple, Any] = {}
-        # (scene, receiver) → its technique sets, found by one task; a set the scene has no
-        # lights for gets a task of its own, whose error is its own cell's alone.
-        sets: dict[tuple, list[tuple[str, ...]]] = {}
+        refs = {}
         for job in jobs:
             key = (job.scene.digest, job.receivers)
             if key not in refs:
                 refs[key] = client.submit(reference_task, scenes[job.scene.digest], job.receivers, pure=False)
-            techniques = job.estimator.techniques
-            alone = () if lights_suit(job.scene, techniques) else (techniques,)
-            for r in job.receivers if job.predict else ():
-                listed = sets.setdefault((job.scene.digest, r, *alone), [])
-                if techniques not in listed:
-                    listed.append(techniques)
+        # One moments task per (scene, receiver) for all its technique sets; a set the scene
+        # has no lights for (left out of moment_sets) gets a task of its own, whose error is
+        # its own cell's alone.
         moms, groups = {}, []
-        for (digest, r, *_), listed in sets.items():
+
+        def submit_moments(digest: str, r: int, listed: list[tuple[str, ...]]) -> None:
             group = client.submit(moments_task, scenes[digest], r, listed, pure=False)
             groups.append(group)
             for i, techniques in enumerate(listed):
                 moms[(digest, r, techniques)] = client.submit(pick, group, i, pure=False)
+
+        for (digest, r), listed in moment_sets(jobs).items():
+            submit_moments(digest, r, listed)
+        for job in jobs:
+            for r in job.receivers if job.predict else ():
+                if (job.scene.digest, r, job.estimator.techniques) not in moms:
+                    submit_moments(job.scene.digest, r, [job.estimator.techniques])
         units = plan_units(jobs, self.unit_evaluations)
         places: dict[int, list[tuple[int, int]]] = {c: [] for c in range(len(jobs))}
         for u, unit in enumerate(units):
