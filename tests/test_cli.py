@@ -273,11 +273,11 @@ def test_estimator_help_lists_the_registered_vocabulary(cli):
     (("info", "mitsuba-veach-plates", "--channel", "q"), "--channel"),
     (("info", "mitsuba-veach-plates", "--receivers-file", "no-such-receivers.toml"), "no-such-receivers.toml"),
 ])
-def test_mitsuba_options_refuse_bad_values_in_one_line(args, needle):
+def test_mitsuba_options_refuse_bad_values_in_one_line(cli, args, needle):
     """--channel and --receivers-file: a bad value, or a receivers file for a TOML scene,
     is one line and exit 2, nothing on stdout."""
     pytest.importorskip("mitsuba")
-    line = _one_error_line(run_warpis(*args))
+    line = _one_error_line(cli(*args))
     assert needle in line, line
 
 

@@ -33,7 +33,7 @@ from scipy.stats import norm
 import warpis
 from warpis.analysis.reference import reference
 from warpis.analysis.theory import predictions
-from warpis.kernels import estimators, patterns
+from warpis.kernels import estimators, patterns, registered
 from warpis.kernels.estimators import parse_estimator
 from warpis.kernels.patterns import PATTERNS
 
@@ -146,11 +146,16 @@ def test_unregistering_an_unknown_pattern_fails():
 
 
 def test_without_user_patterns_the_built_in_kernel_runs(lattice):
-    assert estimators.trial_kernel_for_registry() is not estimators.trial_kernel
+    """A user pattern rebuilds the trial and pilot kernels only: the sample, pdf and
+    evaluate kernels know techniques, not patterns, and stay built in."""
+    kernels = registered.registered_kernels()
+    assert kernels.trial is not estimators.trial_kernel and kernels.pilot.module is kernels.trial.module
+    assert (kernels.sample, kernels.pdf, kernels.evaluate) == (registered.BUILT_IN.sample, registered.BUILT_IN.pdf,
+                                                               registered.BUILT_IN.evaluate)
     warpis.unregister_pattern(NAME)
     try:
         assert patterns.user_patterns() == ()
-        assert estimators.trial_kernel_for_registry() is estimators.trial_kernel
+        assert registered.registered_kernels() is registered.BUILT_IN
     finally:
         warpis.register_pattern(NAME, lattice_point)
 
@@ -200,14 +205,17 @@ def test_a_plugin_pattern_runs_in_estimate_and_is_listed_in_help(tmp_path):
     ("def (:", "SyntaxError"),
     ("import sys\nsys.exit(3)", "SystemExit: 3"),
 ])
-def test_a_bad_plugin_is_one_line_and_exit_2(tmp_path, body, problem):
+def test_a_bad_plugin_is_one_line_and_exit_2(cli, tmp_path, body, problem):
+    """In this process (the command's own handling), but for the plugin that exits, which
+    runs in a process of its own: there the exit would end the process, not a test."""
     path = tmp_path / "plugin.py"
     if body == "<dir>":
         path.mkdir()
     elif body is not None:
         path.write_text(body)
-    result = run_warpis("estimate", "occluded-quad", "--plugin", str(path), "--estimator", "independent:single:cosine",
-                        "--n", "4", "--trials", "8")
+    args = ("estimate", "occluded-quad", "--plugin", str(path), "--estimator", "independent:single:cosine",
+            "--n", "4", "--trials", "8")
+    result = run_warpis(*args) if "sys.exit" in (body or "") else cli(*args)
     line = one_error_line(result)
     assert line.startswith(f"warpis: error: --plugin {path}: ") and problem in line, line
 

@@ -32,11 +32,12 @@ from test_techniques import BITE_P, CHI2_RUNS, FAMILY_ALPHA, SAMPLES
 import warpis
 from warpis.analysis.reference import reference
 from warpis.stats import sidak_threshold, variance_interval
-from warpis.analysis.quadrature import _evaluate_kernel, _evaluate_kernel_for
+from warpis.analysis.quadrature import exact_variance
 from warpis.analysis.theory import predictions
-from warpis.kernels import estimators, techniques
+from warpis.kernels import estimators, evaluate, techniques
 from warpis.kernels.engine import run_trials
 from warpis.kernels.integrand import ShadingPoint
+from warpis.kernels.registered import BUILT_IN, registered_kernels
 from warpis.kernels.techniques import TECHNIQUES
 from warpis.testing import ChiSquareTest
 
@@ -151,13 +152,36 @@ def test_theory_predicts_the_user_technique_and_says_what_it_cannot(lobe, quad, 
 
 def test_without_user_techniques_the_built_in_kernels_run(quad):
     assert techniques.user_techniques() == ()
-    assert estimators.trial_kernel_for_registry() is estimators.trial_kernel
-    assert techniques.numpy_kernels(()) == (techniques._sample_kernel, techniques._pdf_kernel)
-    assert _evaluate_kernel_for(()) is _evaluate_kernel
+    assert registered_kernels() is BUILT_IN
+    assert BUILT_IN.all == (estimators.trial_kernel, estimators.pilot_kernel, techniques.sample_kernel,
+                            techniques.pdf_kernel, evaluate.evaluate_kernel)
 
 
-def test_registered_user_technique_gets_its_own_kernel(lobe):
-    assert estimators.trial_kernel_for_registry() is not estimators.trial_kernel
+def test_a_user_technique_gets_its_kernels_compiled_together_once(lobe, quad):
+    """Every kernel that dispatches on technique codes is rebuilt around the user's
+    technique, all in one Warp module: the numpy sampling, the trials (pilot included) and
+    the quadrature load it once between them, and registering the same code again gives
+    the same kernels (nothing compiled twice)."""
+    kernels = registered_kernels()
+    assert not set(kernels.all) & set(BUILT_IN.all)
+    (module,) = {k.module for k in kernels.all}
+    assert module.name.startswith("warpis_registered_")
+    techniques.sample_directions(quad, 0, NAME, np.full((4, 2), 0.5, np.float32))
+    loaded = dict(module.execs)
+    assert len(loaded) == 1
+    run_trials(quad, f"independent:optimal:light-area+{NAME}", 8, 4, receivers=[0])
+    exact_variance(quad, 0, f"jittered:balance:light-area+{NAME}", 8)
+    assert module.execs == loaded  # the same executable: the module was not built again
+    warpis.unregister_technique(NAME)
+    assert registered_kernels() is BUILT_IN
+    again = warpis.register_technique(NAME, cosine_cubed_sample, cosine_cubed_pdf)
+    assert again is not lobe and registered_kernels() is kernels
+
+
+def test_the_numpy_path_says_which_import_builds_its_kernels(lobe, quad, monkeypatch):
+    monkeypatch.setattr(techniques, "_registered_pair", [])
+    with pytest.raises(warpis.WarpisError, match=r"warpis\.kernels\.registered, which is not imported"):
+        techniques.sample_directions(quad, 0, NAME, np.full((4, 2), 0.5, np.float32))
 
 
 def test_registering_a_taken_name_fails():

@@ -38,7 +38,6 @@ says; for many (``exact_variances``) it is the caller's, and the stderr says wha
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import math
 import threading
@@ -53,14 +52,13 @@ import warp as wp
 
 from .. import limits
 from ..errors import WarpisError
-from ..kernels.device import DeviceScene, ReceiverData, SceneData, upload
+from ..kernels.device import DeviceScene, upload
 from ..kernels.engine import register_oracle
 from ..limits import default_threads
 from ..kernels.estimators import COMBINERS, Estimator, parse_estimator
-from ..kernels.integrand import integrand, shading_point
 from ..kernels.patterns import PATTERNS
-from ..kernels.techniques import (TECHNIQUES, LightTable, check_lights, dispatch, light_table, sample_direction,
-                                  technique_pdf, user_techniques)
+from ..kernels.registered import registered_kernels
+from ..kernels.techniques import TECHNIQUES, check_lights, light_table
 from ..scenes import Scene
 from ..vocabulary import Blocks, WeightContext
 from ..point_sets import MAX_POINTS_PER_CALL
@@ -76,61 +74,10 @@ SEED = 0x7E0
 # --------------------------------------------------------------------------- kernel
 
 
-def _make_evaluate_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -> Any:
-    @wp.kernel(module=module, enable_backward=False)
-    def evaluate_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, receivers: wp.array(dtype=wp.int32),
-                        techs: wp.array(dtype=wp.int32), k: wp.int32, u: wp.array(dtype=wp.vec2), every: wp.int32,
-                        f_out: wp.array2d(dtype=wp.float64), pdf_out: wp.array3d(dtype=wp.float64)):
-        """f and every technique's pdf at the direction technique k maps u[j] to, seen
-        from receiver receivers[i].
-
-        Unless ``every`` is set, f is found first and the pdfs only where it is > 0: ψ is
-        0 wherever f is, and a light pdf (a traversal of the emitters) costs more than the
-        shadow ray.  With ``every`` (optimal MIS, whose ψ is non-zero where f is 0) the
-        pdfs are found at every sample.  A sample whose own pdf is 0 (a failed sample) has
-        f = 0 and every pdf 0, as in the estimators.
-        """
-        i, j = wp.tid()
-        sp = shading_point(scene, recv, receivers[i])
-        w = sample_direction(techs[k], scene, table, sp, u[j])
-        f = float(0.0)
-        own = float(0.0)
-        if wp.length_sq(w) > 0.0:
-            if every != 0:
-                own = technique_pdf(techs[k], scene, table, sp, w)
-                if own > 0.0:
-                    f = integrand(scene, sp, w)
-            else:
-                f = integrand(scene, sp, w)
-                if f > 0.0:
-                    own = technique_pdf(techs[k], scene, table, sp, w)
-        if own <= 0.0:
-            f = float(0.0)
-        for t in range(techs.shape[0]):
-            g = own
-            if t != k and own > 0.0:
-                g = technique_pdf(techs[t], scene, table, sp, w)
-            pdf_out[i, j, t] = wp.float64(g)
-        f_out[i, j] = wp.float64(f)
-
-    return evaluate_kernel
-
-
-_evaluate_kernel = _make_evaluate_kernel(sample_direction, technique_pdf, None)
-
-
-@functools.lru_cache(maxsize=None)
-def _evaluate_kernel_for(user: tuple) -> Any:
-    """``_evaluate_kernel`` itself, or one that also knows the user techniques ``user``."""
-    if not user:
-        return _evaluate_kernel
-
-    return _make_evaluate_kernel(*dispatch(user), "unique")
-
-
 @dataclass(frozen=True)
 class Evaluator:
-    """The evaluate kernel bound to one scene's upload and one technique set."""
+    """The evaluate kernel (:mod:`warpis.kernels.evaluate`, the registry's: it knows the
+    user techniques) bound to one scene's upload and one technique set."""
 
     up: DeviceScene  # held until the launches are done: the structs know their mesh by id only
     table: Any  # LightTable
@@ -145,7 +92,7 @@ class Evaluator:
         up = upload(scene)
         codes = wp.array(np.array([TECHNIQUES[t].code for t in techniques], np.int32), dtype=wp.int32,
                          device=up.device)
-        return cls(up, light_table(scene), codes, _evaluate_kernel_for(user_techniques()), len(techniques),
+        return cls(up, light_table(scene), codes, registered_kernels().evaluate, len(techniques),
                    tuple(techniques))
 
     @property

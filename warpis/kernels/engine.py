@@ -32,8 +32,9 @@ from ..limits import default_threads
 from ..stats import SampleMoments
 from ..errors import WarpisError
 from .device import DeviceScene, upload
-from .estimators import Estimator, KernelArgs, parse_estimator, pilot_kernel_for_registry, trial_kernel_for_registry
+from .estimators import Estimator, KernelArgs, parse_estimator
 from .integrand import delta_terms
+from .registered import registered_kernels
 from .techniques import check_lights, light_table
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
@@ -127,7 +128,7 @@ def _prepare(scene: Scene, estimator: str | Estimator, n: int, trials: int, seed
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=dev)
     tail = (wp.uint32(seed), args.pattern, args.combiner, techs, args.m, args.rows, args.cols, args.pilot,
             args.parameter, wp.array(_alphas(scene, est, rx), dtype=wp.vec4d, device=dev))
-    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, trial_kernel_for_registry(), first, delta)
+    return _Job(dev, est.spec, len(rx), n, trials, head, tail, up, registered_kernels().trial, first, delta)
 
 
 # The optimal oracle's coefficients come from the theory, a floor above the engine: it
@@ -461,7 +462,7 @@ def pilot_alphas(scene: Scene, estimator: str | Estimator, n: int, trials: int, 
     up = upload(scene)
     out = wp.empty((len(rx), trials), dtype=wp.vec4d, device=up.device)
     techs = wp.array(np.array(args.techniques, dtype=np.int32), dtype=wp.int32, device=up.device)
-    wp.launch(pilot_kernel_for_registry(), dim=(len(rx), trials), device=up.device,
+    wp.launch(registered_kernels().pilot, dim=(len(rx), trials), device=up.device,
               inputs=[up.data, up.receiver_data, light_table(scene), wp.array(rx, dtype=wp.int32, device=up.device),
                       wp.uint32(limits.seed(seed)), techs, args.pilot, out])
     return out.numpy()[..., :est.technique_count]

@@ -38,7 +38,6 @@ failure point (f − α·g)/ḡ = −N_g α_k.  docs/theory.md derives A, b and 
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -50,10 +49,10 @@ from ..errors import WarpisError
 from ..vocabulary import Combiner, Parameter, Pattern, Registry, WeightContext, grid_shape
 from .device import ReceiverData, SceneData
 from .integrand import ShadingPoint, integrand_via, shading_point
-from .patterns import PATTERNS, pattern_point, point_dispatch, user_patterns
+from .patterns import PATTERNS, pattern_point
 from .rng import stream, uniform
-from .techniques import (LIGHT_AREA, LIGHT_POWER, TECHNIQUES, DirectionSample, LightTable, dispatch, sample_direction,
-                         sample_light_point, technique_pdf, unknown_sample, user_techniques)
+from .techniques import (LIGHT_AREA, LIGHT_POWER, TECHNIQUES, DirectionSample, LightTable, sample_direction,
+                         sample_light_point, technique_pdf, unknown_sample)
 
 
 def _importance_weights(k: int, f: np.ndarray, pdf: np.ndarray, ctx: WeightContext) -> np.ndarray:
@@ -335,11 +334,12 @@ class KernelArgs:
 # --------------------------------------------------------------------------- kernel
 
 
-def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point: Any, module: Any) -> Any:
-    """The trial kernel over the technique dispatch ``sample_direction``/``technique_pdf``
-    and the pattern dispatch ``pattern_point`` (the built-in functions, or those of
-    :func:`warpis.kernels.techniques.dispatch` and :func:`warpis.kernels.patterns.point_dispatch`
-    for user techniques and patterns)."""
+def make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point: Any, module: Any) -> tuple[Any, Any]:
+    """The trial kernel and the pilot kernel over the technique dispatch
+    ``sample_direction``/``technique_pdf`` and the pattern dispatch ``pattern_point`` (the
+    built-in functions, or those of :func:`warpis.kernels.techniques.dispatch` and
+    :func:`warpis.kernels.patterns.point_dispatch` for user techniques and patterns), in
+    the Warp module ``module`` (None: this one)."""
 
     @wp.func(module=module)
     def draw(tech: wp.int32, scene: SceneData, table: LightTable, sp: ShadingPoint, u: wp.vec2) -> DirectionSample:
@@ -586,24 +586,4 @@ def _make_trial_kernel(sample_direction: Any, technique_pdf: Any, pattern_point:
     return trial_kernel, pilot_kernel
 
 
-trial_kernel, pilot_kernel = _make_trial_kernel(sample_direction, technique_pdf, pattern_point, None)
-
-
-@functools.lru_cache(maxsize=None)
-def _kernels_for(user: tuple, user_points: tuple = ()) -> tuple[Any, Any]:
-    if not user and not user_points:
-        return trial_kernel, pilot_kernel
-    return _make_trial_kernel(*dispatch(user), point_dispatch(user_points), "unique")
-
-
-def trial_kernel_for_registry() -> Any:
-    """The trial kernel that knows every registered technique and pattern: the built-in
-    ``trial_kernel`` itself unless user techniques or patterns are registered (one kernel
-    per set of them, cached)."""
-    return _kernels_for(user_techniques(), user_patterns())[0]
-
-
-def pilot_kernel_for_registry() -> Any:
-    """The pilot kernel (the optimal combiner's α per receiver and trial) that knows every
-    registered technique."""
-    return _kernels_for(user_techniques(), user_patterns())[1]
+trial_kernel, pilot_kernel = make_trial_kernel(sample_direction, technique_pdf, pattern_point, None)

@@ -34,7 +34,7 @@ from .. import files
 # The modules whose kernels warpis launches (user techniques and patterns build their own).
 MODULES = (
     "warpis.kernels.estimators",
-    "warpis.analysis.quadrature",
+    "warpis.kernels.evaluate",
     "warpis.kernels.techniques",
     "warpis.kernels.device",
     "warpis.kernels.integrand",

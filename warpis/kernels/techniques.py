@@ -47,16 +47,17 @@ integrand at a receiver"; tests/test_light_paths.py holds the two against each o
 User techniques (:func:`register_technique`): a ``sample``/``pdf`` pair of ``@wp.func`` s
 on a ``ShadingPoint``.  :func:`dispatch` wraps the built-in dispatch in one branch per user
 technique (its code a ``wp.static`` constant), and the kernels that dispatch on codes
-(here :func:`numpy_kernels`, ``estimators.trial_kernel_for_registry``, the theory's
-evaluation kernel) are built from it in a unique Warp module, once per registered set;
-with no user technique they are the built-in kernels themselves.
+(the sample and pdf kernels here, the trial and pilot kernels, the quadrature's evaluate
+kernel) are built from it together, in one Warp module per registered set
+(:mod:`warpis.kernels.registered`); with no user technique they are the built-in kernels
+themselves.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -625,7 +626,10 @@ def sampler(user: tuple[UserEntry, ...]) -> Any:
     return sample_user
 
 
-def _make_numpy_kernels(sample_technique: Any, technique_pdf: Any, module: Any) -> tuple[Any, Any]:
+def make_numpy_kernels(sample_technique: Any, technique_pdf: Any, module: Any) -> tuple[Any, Any]:
+    """The kernels behind :func:`sample_directions` and :func:`direction_pdf` over the
+    dispatch ``sample_technique``/``technique_pdf``, in the Warp module ``module`` (None: this one)."""
+
     @wp.kernel(module=module, enable_backward=False)
     def sample_kernel(scene: SceneData, recv: ReceiverData, table: LightTable, tech: wp.int32, r: wp.int32,
                       u: wp.array(dtype=wp.vec2), dirs: wp.array(dtype=wp.vec3), pdf: wp.array(dtype=wp.float64)):
@@ -646,16 +650,28 @@ def _make_numpy_kernels(sample_technique: Any, technique_pdf: Any, module: Any) 
 
 
 # The built-in pair: the same factory over the built-in dispatch, in this module.
-_sample_kernel, _pdf_kernel = _make_numpy_kernels(sample_technique, technique_pdf, None)
+sample_kernel, pdf_kernel = make_numpy_kernels(sample_technique, technique_pdf, None)
+
+# With user techniques registered, the pair that knows them is built together with the
+# registry's other kernels (trial, pilot, evaluate) in one Warp module, so that one
+# compile serves them all; that is warpis.kernels.registered's work, a module above this
+# one (it builds the trial kernel too), which hands its pair over here on import.
+_registered_pair: list[Callable[[], tuple[Any, Any]]] = []
 
 
-@functools.lru_cache(maxsize=None)
-def numpy_kernels(user: tuple[UserEntry, ...]) -> tuple[Any, Any]:
-    """``(_sample_kernel, _pdf_kernel)`` for the user techniques ``user`` (the built-in pair
-    when there are none)."""
-    if not user:
-        return _sample_kernel, _pdf_kernel
-    return _make_numpy_kernels(sampler(user), dispatch(user)[1], "unique")
+def register_numpy_kernels(pair: Callable[[], tuple[Any, Any]]) -> None:
+    """Set the function ``pair() → (sample kernel, pdf kernel)`` that knows the registered
+    user techniques (:mod:`warpis.kernels.registered` sets it on import)."""
+    _registered_pair[:] = [pair]
+
+
+def _numpy_kernels() -> tuple[Any, Any]:
+    if not user_techniques():
+        return sample_kernel, pdf_kernel
+    if not _registered_pair:
+        raise WarpisError("user techniques: the kernels that know them are built by warpis.kernels.registered, "
+                          "which is not imported (import warpis)")
+    return _registered_pair[0]()
 
 
 def check_lights(scene: Scene, techniques: Sequence[str], estimates_f: bool = True) -> None:
@@ -696,7 +712,7 @@ def sample_directions(scene: Scene, receiver: int, technique: str, u: np.ndarray
     uu = wp.array(np.ascontiguousarray(u, dtype=np.float32), dtype=wp.vec2, device=dev)
     dirs = wp.zeros(len(u), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(u), dtype=wp.float64, device=dev)
-    wp.launch(numpy_kernels(user_techniques())[0], dim=len(u), device=dev,
+    wp.launch(_numpy_kernels()[0], dim=len(u), device=dev,
               inputs=[up.data, up.receiver_data, light_table(scene), TECHNIQUES.lookup(technique).code, receiver,
                       uu, dirs, pdf])
     return dirs.numpy(), pdf.numpy()
@@ -709,7 +725,7 @@ def direction_pdf(scene: Scene, receiver: int, technique: str, directions: np.nd
     dev = up.device
     dirs = wp.array(np.ascontiguousarray(directions, dtype=np.float32), dtype=wp.vec3, device=dev)
     pdf = wp.zeros(len(directions), dtype=wp.float64, device=dev)
-    wp.launch(numpy_kernels(user_techniques())[1], dim=len(directions), device=dev,
+    wp.launch(_numpy_kernels()[1], dim=len(directions), device=dev,
               inputs=[up.data, up.receiver_data, light_table(scene), TECHNIQUES.lookup(technique).code, receiver,
                       dirs, pdf])
     return pdf.numpy()
