@@ -9,9 +9,13 @@ is Warp code of the user's, so each of the five is rebuilt around it — and all
 into **one** Warp module per registered set.  Warp compiles a module as one translation
 unit, and these kernels share nearly all their code (the integrand, the materials, the
 ray queries): one module compiles in little more than the trial kernel's time alone,
-once, for whatever a command or session runs next, where five modules of their own each
-compiled that shared code again (a gallery technique of ``warpis check``, 2-core box:
-trial, sample, pdf and evaluate kernels 28–30 s as four modules, 16–20 s as one).
+once, for whatever a command or session runs next, where modules of their own each
+compiled that shared code again.  A technique of the ``warpis check`` gallery on the
+2-core box: the trial (with the pilot), sample, pdf and evaluate kernels took 28–30 s as
+four modules and take 16–20 s as one; ``warpis check`` needed three of those modules and
+``study`` and ``verify`` two (trial and evaluate, 22–27 s), where one module serves all.
+The price: a command that runs the trial kernel alone (``estimate``) compiles the others
+with it, 19–23 s against 16–19 s for the trial kernel's module alone.
 
 The module is named by its content hash, as Warp names a ``module="unique"`` one, so
 Warp's kernel cache finds it again in the next process, and a process that registers the
