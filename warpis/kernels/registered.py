@@ -84,4 +84,9 @@ def _kernels_for(user: tuple[UserEntry, ...], user_points: tuple[UserEntry, ...]
         return _by_module.setdefault(module.name, RegisteredKernels(trial, pilot, sample, pdf, evaluate))
 
 
-register_numpy_kernels(lambda: (registered_kernels().sample, registered_kernels().pdf))
+def _numpy_pair() -> tuple[Any, Any]:
+    kernels = registered_kernels()
+    return kernels.sample, kernels.pdf
+
+
+register_numpy_kernels(_numpy_pair)
