@@ -2,10 +2,10 @@
 
 :mod:`warpis.analysis.quadrature` builds exact variances and moments from what this
 kernel returns at dense jittered points of each technique's primary-sample square
-(docs/theory.md, "Exact variances by dense quadrature").  It is a kernel over the
-technique dispatch, as the trial kernel is: :func:`make_evaluate_kernel` builds it over
-any dispatch (the built-in one here, one that also knows the user techniques in
-:mod:`warpis.kernels.registered`).
+(docs/theory.md, "Exact variance of any estimator: independent blocks" and "Reference
+moments").  It is a kernel over the technique dispatch, as the trial kernel is:
+:func:`make_evaluate_kernel` builds it over any dispatch (the built-in one here, one that
+also knows the user techniques in :mod:`warpis.kernels.registered`).
 """
 
 from __future__ import annotations
