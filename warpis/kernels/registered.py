@@ -56,6 +56,9 @@ class RegisteredKernels:
 
 BUILT_IN = RegisteredKernels(trial_kernel, pilot_kernel, sample_kernel, pdf_kernel, evaluate_kernel)
 
+# Two lookups: _kernels_for's cache by registry entries (fast, but an entry registered
+# again is a new key), and _by_module by content, so that the same code registered again
+# runs the kernels this process already built and loaded.
 _lock = threading.Lock()
 _by_module: dict[str, RegisteredKernels] = {}  # module name (its content hash) → its kernels, this process's
 
