@@ -156,3 +156,24 @@ def test_estimators_match_mitsuba_direct(mitsuba_values, spec):
     mine, mine_se = x.mean(axis=1), x.std(axis=1, ddof=1) / math.sqrt(x.shape[1])
     z = (mine - means[:, 1]) / np.hypot(mine_se, ses[:, 1])
     assert np.abs(z).max() <= ESTIMATOR_Z, (spec, np.round(z, 2))
+
+
+def test_the_generator_check_tells_rounding_from_a_moved_point(tmp_path):
+    """`--check` forgives two CPUs' float32 roundings of Mitsuba's hits (seen 1.01e-6
+    apart) but not a receiver that moved to another point."""
+    from pathlib import Path
+
+    from warpis.scenes.builders.material_preview import _same_points
+
+    committed = Path(__file__).resolve().parents[1] / "meshes" / NAME / "scene.receivers.toml"
+    text = committed.read_text()
+    first = text.index("    [") + len("    [")
+    x = float(text[first:text.index(",", first)])
+
+    def moved_by(dx: float) -> Path:
+        path = tmp_path / f"moved-{dx}.toml"
+        path.write_text(text[:first] + repr(x + dx) + text[text.index(",", first):])
+        return path
+
+    assert _same_points(committed, moved_by(2e-6))
+    assert not _same_points(committed, moved_by(1e-3))
