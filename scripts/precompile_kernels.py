@@ -4,8 +4,9 @@
 Run it after changing any kernel or ``@wp.func`` (or after moving to another warp-lang)
 and commit the result: ``tests/test_precompiled.py`` fails while a shipped object is
 stale.  Each module is loaded on the CPU with ``wp.load_module`` into an empty kernel
-cache, with Warp's default flags, exactly as a launch loads it; the object and its
-metadata are kept.  :mod:`warpis.kernels.precompiled` says how they are found, and where not.
+cache, with the modules' own portable flags (``CPU_COMPILER_FLAGS``), exactly as a launch
+loads it; the object and its metadata are kept, and the manifest names the target they
+are for (the operating system, the architecture, Warp's LLVM).  :mod:`warpis.kernels.precompiled` says how they are found, and where not.
 
     python scripts/precompile_kernels.py           # rebuild every module (about a minute)
     python scripts/precompile_kernels.py --check   # exit 1 naming the stale modules
@@ -28,13 +29,15 @@ os.environ["WARP_CACHE_PATH"] = BUILD_CACHE
 import warp as wp
 
 import warpis  # noqa: F401  (imports every kernel module, whose content is hashed)
-from warpis.kernels.precompiled import CPU_BLOCK_DIM, MANIFEST, SHIPPED, module_folders, stale_modules
+from warpis.kernels.precompiled import CPU_BLOCK_DIM, MANIFEST, SHIPPED, cpu_target, module_folders, stale_modules
 
 
 def build() -> None:
     """Replace the shipped folders with one object and its metadata per module."""
     wp.init()
     folders = module_folders()
+    target = cpu_target()
+    suffix = f".cpu{target.rsplit('-', 1)[1]}.o"  # Warp's object name ends with the target's hash
     for old in SHIPPED.glob("wp_*"):
         shutil.rmtree(old)
     SHIPPED.mkdir(exist_ok=True)
@@ -42,13 +45,15 @@ def build() -> None:
         wp.load_module(name, device="cpu", block_dim=CPU_BLOCK_DIM)
         built = Path(wp.config.kernel_cache_dir) / folder
         kept = [f for f in built.iterdir() if f.suffix in (".o", ".meta")]
-        if len(kept) != 2:
-            sys.exit(f"{name}: expected one object and its metadata in {built}, found {sorted(os.listdir(built))}")
+        if len(kept) != 2 or not any(f.name.endswith(suffix) for f in kept):
+            sys.exit(f"{name}: expected one object (*{suffix}) and its metadata in {built}, "
+                     f"found {sorted(os.listdir(built))}")
         (SHIPPED / folder).mkdir()
         for f in kept:
             shutil.copyfile(f, SHIPPED / folder / f.name)
         print(f"{name}: {folder}")
-    MANIFEST.write_text(json.dumps({"warp": wp.config.version, "folders": sorted(folders.values())}, indent=1) + "\n")
+    manifest = {"warp": wp.config.version, "target": target, "folders": sorted(folders.values())}
+    MANIFEST.write_text(json.dumps(manifest, indent=1) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:

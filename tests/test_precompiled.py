@@ -22,56 +22,68 @@ def test_every_shipped_object_is_current():
     assert {f.name for f in shipped_folders()} == set(module_folders().values())
 
 
-# In a fresh process with an empty kernel cache: seed it, load the smallest module (which
-# tells whether this CPU is the one the objects were built for), then every module.
+# In a fresh process with an empty kernel cache: seed it and load every module; the
+# modules whose source Warp had to write (the first step of a compile).
 COLD_LOAD = textwrap.dedent("""
-    import json, os, sys
+    import json
     from pathlib import Path
     import warp as wp
     import warpis
-    from warpis.kernels.precompiled import CPU_BLOCK_DIM, MODULES, module_folders, seed_kernel_cache, shipped_folders
+    from warpis.kernels.precompiled import CPU_BLOCK_DIM, MODULES, module_folders, seed_kernel_cache
     seed_kernel_cache()
     cache = Path(wp.config.kernel_cache_dir)
-    folders = module_folders()
-    def objects(folder):
-        return sorted(p.name for p in folder.glob("*.o"))
-    wp.load_module("warpis.kernels.camera", device="cpu", block_dim=CPU_BLOCK_DIM)
-    probe = folders["warpis.kernels.camera"]
-    shipped = {f.name: objects(f) for f in shipped_folders()}
-    if (cache / probe / (probe + ".cpp")).exists():
-        print(json.dumps({"other_cpu": objects(cache / probe) != shipped[probe]}))
-        sys.exit(0)
     for name in MODULES:
         wp.load_module(name, device="cpu", block_dim=CPU_BLOCK_DIM)
-    compiled = [n for n, f in folders.items() if (cache / f / (f + ".cpp")).exists()]
+    compiled = [n for n, f in module_folders().items() if (cache / f / (f + ".cpp")).exists()]
     print(json.dumps({"compiled": compiled}))
 """)
 
 
-def test_a_cold_cache_loads_the_shipped_objects_without_compiling(tmp_path):
+def _skip_unless_built_for_here() -> None:
     if shipped_warp() != wp.config.version:
         pytest.skip(f"the shipped objects are for warp-lang {shipped_warp()}, this is {wp.config.version}: "
                     "python scripts/precompile_kernels.py builds them for it")
+    if precompiled._manifest().get("target") != precompiled.cpu_target():
+        pytest.skip(f"the shipped objects are for {precompiled._manifest().get('target')}, "
+                    f"this machine is {precompiled.cpu_target()}")
+
+
+def test_a_cold_cache_loads_the_shipped_objects_without_compiling(tmp_path):
+    """On any CPU of the shipped target (operating system, architecture, Warp's LLVM):
+    the objects do not depend on the CPU's instruction-set features."""
+    _skip_unless_built_for_here()
     env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "warp"))
     done = subprocess.run([sys.executable, "-c", COLD_LOAD], env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     result = json.loads(done.stdout.strip().splitlines()[-1])
-    if result.get("other_cpu"):
-        pytest.skip("this CPU's instruction-set features differ from those the shipped objects were built for")
     assert result == {"compiled": []}, "a module compiled although its object was seeded"
+
+
+def test_the_shipped_objects_are_for_no_particular_cpu():
+    """Compiled for the triple's generic CPU: Warp's object names hash no host
+    instruction-set features (the manifest's target is this machine's key of the portable
+    flags, which holds none), and no module asks for -march=native."""
+    _skip_unless_built_for_here()
+    suffix = f".cpu{precompiled.cpu_target().rsplit('-', 1)[1]}.o"
+    for folder in shipped_folders():
+        assert [p.name for p in folder.glob("*.o")] == [folder.name + suffix]
+    for name in MODULES:
+        assert wp.get_module(name).options["cpu_compiler_flags"] == precompiled.CPU_COMPILER_FLAGS
+    assert "-march" not in precompiled.CPU_COMPILER_FLAGS
 
 
 # manifest text, and whether its folders still count as current content (stale_modules
 # judges the content hash, not the Warp version the objects are for).
-MANIFESTS = [('{"warp": "0.0.1", "folders": %s}', True), ('{"folders": %s}', True), ("not json %s", False),
-             ("[%s]", False)]
+MANIFESTS = [('{"warp": "0.0.1", "target": "@", "folders": %s}', True), ('{"folders": %s}', True),
+             ('{"warp": "%s", "target": "1.19.0-Darwin-arm64-0", "folders": %%s}' % wp.config.version, True),
+             ('{"warp": "%s", "folders": %%s}' % wp.config.version, True), ("not json %s", False), ("[%s]", False)]
 
 
 @pytest.mark.parametrize("manifest, current", MANIFESTS)
-def test_objects_of_another_warp_version_or_a_broken_manifest_are_not_used(tmp_path, monkeypatch, manifest,
+def test_objects_of_another_warp_target_or_a_broken_manifest_are_not_used(tmp_path, monkeypatch, manifest,
                                                                             current):
     folders = json.dumps(sorted(module_folders().values()))
-    (tmp_path / "manifest.json").write_text(manifest % folders)
+    (tmp_path / "manifest.json").write_text(manifest.replace("@", precompiled.cpu_target()) % folders)
     for name in module_folders().values():
         (tmp_path / name).mkdir()
         (tmp_path / name / f"{name}.cpu0.o").write_bytes(b"object")

@@ -9,8 +9,10 @@ import warp as wp
 
 from ..scenes.camera import register_ray_caster
 from .integrand import FAR
-from .precompiled import seed_kernel_cache
+from .precompiled import compile_portably, seed_kernel_cache
 from .spheres import NO_ROOT, sphere_roots
+
+compile_portably(__name__)  # shipped compiled: precompiled.py says why portably
 
 
 @wp.kernel(enable_backward=False)

@@ -32,7 +32,9 @@ from ..limits import check_device
 from ..vocabulary import MATERIALS
 from .bvh import PARALLEL, PLANE_TOL, SELF_HIT, WideBvh, cached_wide_bvh, coplanar, magnitude, upload_wide_bvh, vec64
 from .environment import EnvironmentData
-from .precompiled import seed_kernel_cache
+from .precompiled import compile_portably, seed_kernel_cache
+
+compile_portably(__name__)  # shipped compiled: precompiled.py says why portably
 
 if TYPE_CHECKING:
     from ..scenes import Scene

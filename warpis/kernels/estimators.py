@@ -50,9 +50,12 @@ from ..vocabulary import Combiner, Parameter, Pattern, Registry, WeightContext, 
 from .device import ReceiverData, SceneData
 from .integrand import ShadingPoint, integrand_via, shading_point
 from .patterns import PATTERNS, pattern_point
+from .precompiled import compile_portably
 from .rng import stream, uniform
 from .techniques import (LIGHT_AREA, LIGHT_POWER, TECHNIQUES, DirectionSample, LightTable, sample_direction,
                          sample_light_point, technique_pdf, unknown_sample)
+
+compile_portably(__name__)  # shipped compiled: precompiled.py says why portably
 
 
 def _importance_weights(k: int, f: np.ndarray, pdf: np.ndarray, ctx: WeightContext) -> np.ndarray:

@@ -16,7 +16,10 @@ import warp as wp
 
 from .device import ReceiverData, SceneData
 from .integrand import integrand, shading_point
+from .precompiled import compile_portably
 from .techniques import LightTable, sample_direction, technique_pdf
+
+compile_portably(__name__)  # shipped compiled: precompiled.py says why portably
 
 
 def make_evaluate_kernel(sample_direction: Any, technique_pdf: Any, module: Any) -> Any:

@@ -58,8 +58,11 @@ from .emitters import nearest_emitter
 from .spheres import nearest_sphere, spheres_block
 from .environment import environment_radiance
 from .microfacet import conductor_brdf, plastic_brdf
+from .precompiled import compile_portably
 from .shading import ShadingPoint, with_frame
 from .warps import INV_2PI, INV_PI
+
+compile_portably(__name__)  # shipped compiled: precompiled.py says why portably
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes import Scene

@@ -12,10 +12,16 @@ Warp's own lookup finds them.  Nothing else changes: the launch, the flags, the 
 Warp names each object by the module's content hash (the source of every kernel and
 function it reaches, and the compile options) and by a hash of the LLVM version, the
 target triple and, under Warp's default ``-march=native``, the host CPU's instruction-set
-features.  A shipped object is therefore found only by the very code it was built from,
-on a CPU with the very features it was built for; anywhere else Warp compiles as it
-always does.  The Warp version is checked here, because the objects of one version are
-not those of another and Warp keeps a cache folder per version.
+features.  Under ``-march=native`` a shipped object would be found only on a CPU with the
+very features of the machine that built it, which is hardly any user's.  So these
+modules compile with :data:`CPU_COMPILER_FLAGS` (:func:`compile_portably`): Warp's
+default flags less ``-march=native``, the generic CPU of the triple.  Their objects are
+then found by the very code they were built from on every machine of the same operating
+system and architecture (the manifest's ``target``, :func:`cpu_target`); elsewhere Warp
+compiles as it always does.  The generic target costs the trial kernels nothing
+measurable and changes no result (docs/development.md, "Kernels shipped compiled").  The
+Warp version is checked too, because the objects of one version are not those of
+another and Warp keeps a cache folder per version.
 """
 
 from __future__ import annotations
@@ -40,6 +46,11 @@ MODULES = (
     "warpis.kernels.integrand",
     "warpis.kernels.camera",
 )
+# Warp's default cpu_compiler_flags (warp-lang 1.19) less -march=native: the same
+# inlining, for the generic CPU of the target triple, so that Warp's object name carries
+# no host instruction-set features.
+CPU_COMPILER_FLAGS = ("-mllvm=-inline-threshold=9000 -mllvm=-inline-cold-callsite-threshold=3000"
+                      " -mllvm=-slp-recursion-max-depth=4")
 # A CPU launch loads a module for block_dim 1, which is part of its content hash; Warp's
 # compile_aot_module builds for the module's block_dim option (256) instead, which no
 # CPU launch would find.
@@ -71,16 +82,32 @@ def seed_kernel_cache() -> None:
                 return
 
 
+def compile_portably(module: str | wp.Module) -> None:
+    """Compile ``module`` (a module name, or a ``wp.Module``) with :data:`CPU_COMPILER_FLAGS`:
+    every module of :data:`MODULES` calls it on itself, and the kernels rebuilt around
+    user code take it too, so that machines of different CPUs sharing one kernel cache (a
+    cluster's shared home folder) compile them once between them."""
+    wp.set_module_options({"cpu_compiler_flags": CPU_COMPILER_FLAGS}, module)
+
+
+def cpu_target() -> str:
+    """This machine's key for objects compiled with :data:`CPU_COMPILER_FLAGS`: Warp's
+    version, the operating system, the architecture and a hash of the LLVM version and
+    target triple (``wp.get_cpu_kernel_cache_key``).  Starts Warp."""
+    return wp.get_cpu_kernel_cache_key(cpu_compiler_flags=CPU_COMPILER_FLAGS)
+
+
 def shipped_warp() -> str | None:
     """The warp-lang version the shipped objects were built with (None: no usable manifest)."""
     return _manifest().get("warp")
 
 
 def shipped_folders(any_warp: bool = False) -> list[Path]:
-    """The shipped module folders usable by this Warp: none where its version differs from
-    the one they were built with, unless ``any_warp`` (their content, not their use)."""
+    """The shipped module folders usable here: none where this Warp's version or this
+    machine's :func:`cpu_target` differs from the one they were built for, unless
+    ``any_warp`` (their content, not their use)."""
     manifest = _manifest()
-    if not any_warp and manifest.get("warp") != wp.config.version:
+    if not any_warp and (manifest.get("warp") != wp.config.version or manifest.get("target") != cpu_target()):
         return []
     return [SHIPPED / name for name in manifest.get("folders", []) if (SHIPPED / name).is_dir()]
 

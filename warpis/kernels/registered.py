@@ -34,6 +34,7 @@ import warp as wp
 from .estimators import make_trial_kernel, pilot_kernel, trial_kernel
 from .evaluate import evaluate_kernel, make_evaluate_kernel
 from .patterns import point_dispatch, user_patterns
+from .precompiled import compile_portably
 from .techniques import (dispatch, make_numpy_kernels, pdf_kernel, register_numpy_kernels, sample_kernel, sampler,
                          user_techniques)
 from ..vocabulary import UserEntry
@@ -75,6 +76,7 @@ def _kernels_for(user: tuple[UserEntry, ...], user_points: tuple[UserEntry, ...]
         return BUILT_IN
     with _lock:
         module = wp.Module("warpis_registered", None)
+        compile_portably(module)  # one object for every CPU that shares the kernel cache
         sample_direction, technique_pdf = dispatch(user)
         trial, pilot = make_trial_kernel(sample_direction, technique_pdf, point_dispatch(user_points), module)
         if user:  # the other three know techniques only: user patterns alone leave them built in

@@ -72,10 +72,13 @@ from .environment import environment_pdf, sample_environment
 from .integrand import PHONG as PHONG_MATERIAL
 from .integrand import ROUGHCONDUCTOR, ROUGHPLASTIC, ShadingPoint, shading_point
 from .microfacet import conductor_pdf, conductor_sample, plastic_pdf, plastic_sample
+from .precompiled import compile_portably
 from .spheres import cone_sample, into_sphere, one_minus_cos_max, sphere_area_point, sphere_roots
 from .warps import (PI64, cosine_hemisphere_pdf, phong_lobe_pdf, square_to_cosine_hemisphere, square_to_phong_lobe,
                     square_to_spherical_triangle, square_to_triangle, square_to_uniform_hemisphere, to_world,
                     triangle_solid_angle, uniform_hemisphere_pdf)
+
+compile_portably(__name__)  # shipped compiled: precompiled.py says why portably
 
 if TYPE_CHECKING:  # annotations only: scenes import the kernels' registries
     from ..scenes import Scene
