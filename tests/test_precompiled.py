@@ -75,8 +75,8 @@ def test_the_shipped_objects_are_for_no_particular_cpu():
 # manifest text, and whether its folders still count as current content (stale_modules
 # judges the content hash, not the Warp version the objects are for).
 MANIFESTS = [('{"warp": "0.0.1", "target": "@", "folders": %s}', True), ('{"folders": %s}', True),
-             ('{"warp": "%s", "target": "1.19.0-Darwin-arm64-0", "folders": %%s}' % wp.config.version, True),
-             ('{"warp": "%s", "folders": %%s}' % wp.config.version, True), ("not json %s", False), ("[%s]", False)]
+             ('{"warp": "' + wp.config.version + '", "target": "1.19.0-Darwin-arm64-0", "folders": %s}', True),
+             ('{"warp": "' + wp.config.version + '", "folders": %s}', True), ("not json %s", False), ("[%s]", False)]
 
 
 @pytest.mark.parametrize("manifest, current", MANIFESTS)
