@@ -37,6 +37,7 @@ from warpis.analysis.theory import predictions
 from warpis.kernels import estimators, evaluate, techniques
 from warpis.kernels.engine import run_trials
 from warpis.kernels.integrand import ShadingPoint
+from warpis.kernels.precompiled import CPU_COMPILER_FLAGS
 from warpis.kernels.registered import BUILT_IN, registered_kernels
 from warpis.kernels.techniques import TECHNIQUES
 from warpis.testing import ChiSquareTest
@@ -166,6 +167,7 @@ def test_a_user_technique_gets_its_kernels_compiled_together_once(lobe, quad):
     assert not set(kernels.all) & set(BUILT_IN.all)
     (module,) = {k.module for k in kernels.all}
     assert module.name.startswith("warpis_registered_")
+    assert module.options["cpu_compiler_flags"] == CPU_COMPILER_FLAGS  # CPUs sharing a cache build it once
     techniques.sample_directions(quad, 0, NAME, np.full((4, 2), 0.5, np.float32))
     loaded = dict(module.execs)
     assert len(loaded) == 1
