@@ -37,6 +37,8 @@ def build() -> None:
     wp.init()
     folders = module_folders()
     target = cpu_target()
+    if target is None:
+        sys.exit("this Warp has no CPU compiler: nothing to precompile")
     suffix = f".cpu{target.rsplit('-', 1)[1]}.o"  # Warp's object name ends with the target's hash
     for old in SHIPPED.glob("wp_*"):
         shutil.rmtree(old)

@@ -105,3 +105,12 @@ def test_seeding_copies_only_what_the_cache_lacks(tmp_path):
     assert (target / "wp_m_0000000.meta").read_text() == "kept"
     assert (target / "wp_m_0000000.cpu1.o").read_bytes() == b"object"
     assert sorted(p.name for p in Path(target).iterdir()) == ["wp_m_0000000.cpu1.o", "wp_m_0000000.meta"]
+
+
+def test_a_warp_without_a_cpu_compiler_uses_no_shipped_object(monkeypatch):
+    def no_llvm(**_):
+        raise RuntimeError("Cannot identify the CPU cache target because the LLVM backend is unavailable.")
+
+    monkeypatch.setattr(wp, "get_cpu_kernel_cache_key", no_llvm)
+    assert precompiled.cpu_target() is None
+    assert shipped_folders() == []

@@ -90,11 +90,15 @@ def compile_portably(module: str | wp.Module) -> None:
     wp.set_module_options({"cpu_compiler_flags": CPU_COMPILER_FLAGS}, module)
 
 
-def cpu_target() -> str:
+def cpu_target() -> str | None:
     """This machine's key for objects compiled with :data:`CPU_COMPILER_FLAGS`: Warp's
     version, the operating system, the architecture and a hash of the LLVM version and
-    target triple (``wp.get_cpu_kernel_cache_key``).  Starts Warp."""
-    return wp.get_cpu_kernel_cache_key(cpu_compiler_flags=CPU_COMPILER_FLAGS)
+    target triple (``wp.get_cpu_kernel_cache_key``); None where Warp has no CPU compiler.
+    Starts Warp."""
+    try:
+        return wp.get_cpu_kernel_cache_key(cpu_compiler_flags=CPU_COMPILER_FLAGS)
+    except RuntimeError:  # no LLVM backend: no CPU kernels to find objects for
+        return None
 
 
 def shipped_warp() -> str | None:
