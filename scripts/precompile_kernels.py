@@ -6,7 +6,8 @@ and commit the result: ``tests/test_precompiled.py`` fails while a shipped objec
 stale.  Each module is loaded on the CPU with ``wp.load_module`` into an empty kernel
 cache, with the modules' own portable flags (``CPU_COMPILER_FLAGS``), exactly as a launch
 loads it; the object and its metadata are kept, and the manifest names the target they
-are for (the operating system, the architecture, Warp's LLVM).  :mod:`warpis.kernels.precompiled` says how they are found, and where not.
+are for (the operating system, the architecture, Warp's LLVM).
+:mod:`warpis.kernels.precompiled` says how they are found, and where not.
 
     python scripts/precompile_kernels.py           # rebuild every module (about a minute)
     python scripts/precompile_kernels.py --check   # exit 1 naming the stale modules
