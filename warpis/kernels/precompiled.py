@@ -46,11 +46,11 @@ MODULES = (
     "warpis.kernels.integrand",
     "warpis.kernels.camera",
 )
-# Warp's default cpu_compiler_flags (warp-lang 1.19) less -march=native: the same
-# inlining, for the generic CPU of the target triple, so that Warp's object name carries
-# no host instruction-set features.
-CPU_COMPILER_FLAGS = ("-mllvm=-inline-threshold=9000 -mllvm=-inline-cold-callsite-threshold=3000"
-                      " -mllvm=-slp-recursion-max-depth=4")
+# Warp's cpu_compiler_flags less -march=native: Warp's own tuning (its default raises the
+# inlining thresholds), for the generic CPU of the target triple, so that Warp's object
+# name carries no host instruction-set features.  Derived, not copied, so that it follows
+# Warp's defaults to the next release (whose objects precompile_kernels.py rebuilds).
+CPU_COMPILER_FLAGS = " ".join(flag for flag in (wp.config.cpu_compiler_flags or "").split() if flag != "-march=native")
 # A CPU launch loads a module for block_dim 1, which is part of its content hash; Warp's
 # compile_aot_module builds for the module's block_dim option (256) instead, which no
 # CPU launch would find.
